@@ -1,0 +1,56 @@
+"""Scene settings of SG Lightfield (``scene.sg_lightfield``)."""
+from __future__ import annotations
+
+import bpy
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+
+PRESET_ITEMS = (
+    ("DRAFT", "Draft", "Fast preview of the whole pipeline"),
+    ("PREVIEW", "Preview", "Balanced quality for look development"),
+    ("PRODUCTION", "Production", "Final quality"),
+    ("CUSTOM", "Custom", "Set every knob yourself"),
+)
+
+DEVICE_ITEMS = (
+    ("CPU", "CPU", "Train and render on the CPU"),
+    ("CUDA", "CUDA / OptiX", "Use an NVIDIA GPU when one is present"),
+)
+
+
+class SGLightfieldSettings(bpy.types.PropertyGroup):
+    preset: EnumProperty(name="Quality", items=PRESET_ITEMS, default="DRAFT")
+    texel_density: FloatProperty(
+        name="Texel Density", description="Light-field texels per metre of surface",
+        default=8.0, min=0.01, soft_max=256.0, max=4096.0)
+    lightfield_resolution: IntProperty(
+        name="Light-Field Resolution", description="Octahedral light-field image size per texel",
+        default=16, min=8, max=128)
+    samples: IntProperty(name="Samples", description="Cycles samples per light-field pixel",
+                         default=16, min=1, max=65536)
+    sg_count_auto: BoolProperty(name="Automatic SG Count",
+                                description="Choose the SG count per material from its roughness", default=True)
+    sg_count: IntProperty(name="SG Count", description="Spherical Gaussians per texel", default=16, min=1, max=64)
+    training_budget_s: FloatProperty(name="Training Budget", description="Seconds of training at most",
+                                     default=300.0, min=1.0, subtype="TIME_ABSOLUTE", unit="TIME_ABSOLUTE")
+    device: EnumProperty(name="Device", items=DEVICE_ITEMS, default="CPU")
+    output_dir: StringProperty(name="Bake Directory", description="Where the bake writes its files",
+                               default="//sg_bake", subtype="DIR_PATH")
+    # Progress shown by the panel while a bake runs (written by the operator, read by the UI).
+    is_baking: BoolProperty(default=False, options={"SKIP_SAVE"})
+    progress: FloatProperty(default=0.0, min=0.0, max=1.0, subtype="FACTOR", options={"SKIP_SAVE"})
+    status: StringProperty(default="", options={"SKIP_SAVE"})
+
+
+_classes = (SGLightfieldSettings,)
+
+
+def register():
+    for cls in _classes:
+        bpy.utils.register_class(cls)
+    bpy.types.Scene.sg_lightfield = PointerProperty(type=SGLightfieldSettings)
+
+
+def unregister():
+    del bpy.types.Scene.sg_lightfield
+    for cls in reversed(_classes):
+        bpy.utils.unregister_class(cls)

@@ -1,0 +1,1 @@
+"""torch side of SG Lightfield: differentiable SG math, SG fitting, hair U-Net."""
