@@ -14,9 +14,11 @@ $(STAMP): requirements.txt
 	rm -f $(VENV)/.installed-*
 	touch $(STAMP)
 
-# Until the bake stages land, the demo runs what exists: the SG math check and the extension build.
+# Until the bake stages land, the demo runs what exists: the SG math check, the bake plan of the
+# demo scene, and the extension build.
 demo: $(STAMP)
 	$(PY) -m shaders.check_math --quick
+	$(PY) headless/bake.py --scene demo:spheres --preset draft --out $(DEMO_OUT) --plan-only
 	$(PY) -m headless.build_extension --out dist
 
 test: $(STAMP)

@@ -1,0 +1,206 @@
+"""Embedded demo scenes, built by code (bpy.data + bmesh, no operators, no downloads).
+
+Selectable everywhere as ``demo:NAME``: ``build_demo_scene("room")`` returns a new bpy Scene.
+  spheres    Paper I Table 2: GGX roughness 0.2 / 0.3 / 0.4 / 0.5 in a row on a rough plane, lit only
+             by emissive arcs behind them, black world.
+  room       closed room, coloured walls, glossy floor, a glossy and a rough object, an emissive
+             ceiling panel and one point lamp.
+  courtyard  objects that occlude each other under Blender's shipped courtyard HDRI.
+"""
+from __future__ import annotations
+
+import math
+import os
+
+import bmesh
+import bpy
+from mathutils import Matrix, Vector
+
+DEMO_SCENES = ("spheres", "room", "courtyard")
+DEMO_PREFIX = "demo:"
+
+
+def shipped_hdri(name: str) -> str:
+    """Path of one of the CC0 HDRIs that ship inside Blender (city, courtyard, forest, ...)."""
+    path = os.path.join(bpy.utils.system_resource("DATAFILES"), "studiolights", "world", f"{name}.exr")
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"Blender's shipped HDRI '{name}' not found at {path}")
+    return path
+
+
+def _principled(name, color=(0.8, 0.8, 0.8), roughness=0.5, metallic=0.0, emission=None, strength=0.0):
+    mat = bpy.data.materials.new(name)
+    mat.use_nodes = True
+    bsdf = next(n for n in mat.node_tree.nodes if n.type == "BSDF_PRINCIPLED")
+    bsdf.inputs["Base Color"].default_value = (*color, 1.0)
+    bsdf.inputs["Roughness"].default_value = roughness
+    bsdf.inputs["Metallic"].default_value = metallic
+    if emission is not None:
+        bsdf.inputs["Emission Color"].default_value = (*emission, 1.0)
+        bsdf.inputs["Emission Strength"].default_value = strength
+    return mat
+
+
+def _mesh_object(scene, name, build, material, matrix=Matrix.Identity(4)):
+    mesh = bpy.data.meshes.new(name)
+    bm = bmesh.new()
+    build(bm)
+    bm.to_mesh(mesh)
+    bm.free()
+    mesh.materials.append(material)
+    for poly in mesh.polygons:
+        poly.use_smooth = len(mesh.polygons) > 64  # spheres and tori smooth, boxes and planes flat
+    obj = bpy.data.objects.new(name, mesh)
+    obj.matrix_world = matrix
+    scene.collection.objects.link(obj)
+    return obj
+
+
+def _sphere(radius, segments=32, rings=16):
+    return lambda bm: bmesh.ops.create_uvsphere(bm, u_segments=segments, v_segments=rings, radius=radius,
+                                                calc_uvs=True)
+
+
+def _box(sx, sy, sz):
+    def build(bm):
+        bmesh.ops.create_cube(bm, size=1.0, calc_uvs=True)
+        bmesh.ops.scale(bm, vec=Vector((sx, sy, sz)), verts=bm.verts)
+    return build
+
+
+def _plane(sx, sy):
+    def build(bm):
+        bmesh.ops.create_grid(bm, x_segments=1, y_segments=1, size=0.5, calc_uvs=True)
+        bmesh.ops.scale(bm, vec=Vector((sx, sy, 1.0)), verts=bm.verts)
+    return build
+
+
+def _arc(radius, thickness, start, end, segments=48):
+    """A thin tube bent along a circular arc in the XZ plane (an 'emissive arc')."""
+    def build(bm):
+        rings = []
+        for i in range(segments + 1):
+            a = start + (end - start) * i / segments
+            centre = Vector((radius * math.cos(a), 0.0, radius * math.sin(a)))
+            tangent = Vector((-math.sin(a), 0.0, math.cos(a)))
+            side = Vector((0.0, 1.0, 0.0))
+            normal = tangent.cross(side)
+            ring = [bm.verts.new(centre + thickness * (math.cos(b) * normal + math.sin(b) * side))
+                    for b in (2 * math.pi * k / 8 for k in range(8))]
+            rings.append(ring)
+        for r0, r1 in zip(rings, rings[1:]):
+            for k in range(8):
+                bm.faces.new((r0[k], r0[(k + 1) % 8], r1[(k + 1) % 8], r1[k]))
+    return build
+
+
+def _camera(scene, location, target, lens=35.0):
+    cam_data = bpy.data.cameras.new("Camera")
+    cam_data.lens = lens
+    cam = bpy.data.objects.new("Camera", cam_data)
+    cam.location = location
+    direction = Vector(target) - Vector(location)
+    cam.rotation_euler = direction.to_track_quat("-Z", "Y").to_euler()
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    return cam
+
+
+def _world(scene, color=(0.0, 0.0, 0.0), strength=1.0, hdri=None):
+    world = bpy.data.worlds.new(f"{scene.name} World")
+    world.use_nodes = True
+    nodes, links = world.node_tree.nodes, world.node_tree.links
+    background = next(n for n in nodes if n.type == "BACKGROUND")
+    background.inputs["Color"].default_value = (*color, 1.0)
+    background.inputs["Strength"].default_value = strength
+    if hdri:
+        env = nodes.new("ShaderNodeTexEnvironment")
+        env.image = bpy.data.images.load(shipped_hdri(hdri), check_existing=True)
+        links.new(env.outputs["Color"], background.inputs["Color"])
+    scene.world = world
+    return world
+
+
+def _new_scene(name):
+    scene = bpy.data.scenes.new(name)
+    scene.render.engine = "CYCLES"
+    scene.render.resolution_x, scene.render.resolution_y = 640, 360
+    return scene
+
+
+def build_spheres(scene):
+    floor = _principled("Floor", color=(0.5, 0.5, 0.5), roughness=0.8)
+    _mesh_object(scene, "Floor", _plane(10.0, 6.0), floor)
+    for i, rough in enumerate((0.2, 0.3, 0.4, 0.5)):
+        mat = _principled(f"Glossy r{rough:.1f}", color=(0.8, 0.8, 0.8), roughness=rough, metallic=1.0)
+        _mesh_object(scene, f"Sphere r{rough:.1f}", _sphere(0.6), mat,
+                     Matrix.Translation((-2.4 + 1.6 * i, 0.0, 0.6)))
+    for i, (color, radius) in enumerate((((1.0, 0.3, 0.2), 3.0), ((0.3, 1.0, 0.4), 3.6), ((0.3, 0.5, 1.0), 4.2))):
+        mat = _principled(f"Arc {i}", color=(0, 0, 0), roughness=1.0, emission=color, strength=6.0)
+        _mesh_object(scene, f"Arc {i}", _arc(radius, 0.06, math.radians(15), math.radians(165)), mat,
+                     Matrix.Translation((0.0, 2.5 + 0.4 * i, 0.0)))
+    _world(scene, color=(0, 0, 0), strength=0.0)
+    _camera(scene, (0.0, -7.0, 2.2), (0.0, 0.0, 0.6))
+
+
+def build_room(scene):
+    w, d, h = 6.0, 6.0, 3.0
+    white = _principled("White Wall", (0.8, 0.8, 0.8), roughness=0.9)
+    walls = {
+        "Floor": (_plane(w, d), Matrix.Identity(4), _principled("Glossy Floor", (0.6, 0.6, 0.6), roughness=0.25)),
+        "Ceiling": (_plane(w, d), Matrix.Translation((0, 0, h)) @ Matrix.Rotation(math.pi, 4, "X"), white),
+        "Wall Left": (_plane(h, d), Matrix.Translation((-w / 2, 0, h / 2)) @ Matrix.Rotation(math.pi / 2, 4, "Y"),
+                      _principled("Red Wall", (0.8, 0.1, 0.1), roughness=0.9)),
+        "Wall Right": (_plane(h, d), Matrix.Translation((w / 2, 0, h / 2)) @ Matrix.Rotation(-math.pi / 2, 4, "Y"),
+                       _principled("Green Wall", (0.1, 0.7, 0.1), roughness=0.9)),
+        "Wall Back": (_plane(w, h), Matrix.Translation((0, d / 2, h / 2)) @ Matrix.Rotation(math.pi / 2, 4, "X"),
+                      white),
+        "Wall Front": (_plane(w, h), Matrix.Translation((0, -d / 2, h / 2)) @ Matrix.Rotation(-math.pi / 2, 4, "X"),
+                       white),
+    }
+    for name, (build, matrix, mat) in walls.items():
+        _mesh_object(scene, name, build, mat, matrix)
+    _mesh_object(scene, "Glossy Sphere", _sphere(0.7), _principled("Gold", (1.0, 0.75, 0.3), 0.2, metallic=1.0),
+                 Matrix.Translation((-1.0, 0.5, 0.7)))
+    _mesh_object(scene, "Rough Box", _box(1.0, 1.0, 1.4), _principled("Rough Blue", (0.2, 0.3, 0.8), 0.85),
+                 Matrix.Translation((1.3, 1.0, 0.7)) @ Matrix.Rotation(0.4, 4, "Z"))
+    panel = _principled("Ceiling Light", (0, 0, 0), 1.0, emission=(1.0, 0.95, 0.85), strength=12.0)
+    _mesh_object(scene, "Light Panel", _plane(1.5, 1.5), panel,
+                 Matrix.Translation((0, 0, h - 0.01)) @ Matrix.Rotation(math.pi, 4, "X"))
+    lamp_data = bpy.data.lights.new("Lamp", type="POINT")
+    lamp_data.energy = 150.0
+    lamp_data.color = (1.0, 0.85, 0.7)
+    lamp_data.shadow_soft_size = 0.1
+    lamp = bpy.data.objects.new("Lamp", lamp_data)
+    lamp.location = (2.0, -1.5, 2.2)
+    scene.collection.objects.link(lamp)
+    _world(scene, color=(0, 0, 0), strength=0.0)
+    _camera(scene, (0.0, -2.9, 1.6), (0.0, 0.5, 0.7), lens=20.0)
+
+
+def build_courtyard(scene):
+    _mesh_object(scene, "Ground", _plane(12.0, 12.0), _principled("Glossy Ground", (0.4, 0.4, 0.4), roughness=0.3))
+    _mesh_object(scene, "Tall Block", _box(1.0, 1.0, 3.0), _principled("Stone", (0.7, 0.65, 0.6), roughness=0.6),
+                 Matrix.Translation((0.0, 1.0, 1.5)))
+    _mesh_object(scene, "Chrome Sphere", _sphere(0.6), _principled("Chrome", (0.9, 0.9, 0.9), 0.15, metallic=1.0),
+                 Matrix.Translation((0.9, 0.0, 0.6)))
+    _mesh_object(scene, "Arch Roof", _box(2.5, 1.0, 0.2), _principled("Stone", (0.7, 0.65, 0.6), roughness=0.6),
+                 Matrix.Translation((-1.5, -0.5, 1.6)))
+    _mesh_object(scene, "Glossy Box", _box(0.8, 0.8, 0.8), _principled("Glossy Red", (0.7, 0.1, 0.1), roughness=0.3),
+                 Matrix.Translation((-1.5, -0.5, 0.4)))
+    _world(scene, hdri="courtyard")
+    _camera(scene, (3.5, -5.5, 2.5), (-0.3, 0.0, 0.8), lens=30.0)
+
+
+_BUILDERS = {"spheres": build_spheres, "room": build_room, "courtyard": build_courtyard}
+
+
+def build_demo_scene(name: str):
+    """A new scene holding the demo `name` (with or without the 'demo:' prefix); returns the scene."""
+    key = name[len(DEMO_PREFIX):] if name.startswith(DEMO_PREFIX) else name
+    if key not in _BUILDERS:
+        raise ValueError(f"unknown demo scene {name!r}; choose one of: "
+                         + ", ".join(DEMO_PREFIX + n for n in DEMO_SCENES))
+    scene = _new_scene(f"SG demo {key}")
+    _BUILDERS[key](scene)
+    return scene

@@ -1,0 +1,184 @@
+"""Scene analysis: decide what the bake models (DESIGN section 6) and build the BakePlan.
+
+Reads the scene only; never changes it.
+"""
+from __future__ import annotations
+
+import bpy
+import numpy as np
+
+try:  # inside the installed extension the numpy side is a sibling package
+    from ..shaders.bake_plan import (GLOSSY_ROUGHNESS_MAX, BakeInputError, BakePlan, BakeSettings, EnvironmentPlan,
+                                     MaterialPlan, ObjectPlan, auto_sg_count)
+except ImportError:  # bpy as a module with the repository on sys.path
+    from shaders.bake_plan import (GLOSSY_ROUGHNESS_MAX, BakeInputError, BakePlan, BakeSettings, EnvironmentPlan,
+                                   MaterialPlan, ObjectPlan, auto_sg_count)
+
+# An environment whose luminance-weighted chroma (max-min)/max stays below this is treated as grey:
+# one IWEV channel instead of three.
+ACHROMATIC_CHROMA_MAX = 0.05
+
+
+def _surface_bsdf(material):
+    if material is None or not material.use_nodes or material.node_tree is None:
+        return None
+    output = next((n for n in material.node_tree.nodes if n.type == "OUTPUT_MATERIAL" and n.is_active_output), None)
+    if output is None or not output.inputs["Surface"].is_linked:
+        return None
+    node = output.inputs["Surface"].links[0].from_node
+    return node if node.type == "BSDF_PRINCIPLED" else None
+
+
+def _input_value(node, name, default):
+    socket = node.inputs.get(name)
+    if socket is None:
+        return default, False
+    if socket.is_linked:
+        return default, True
+    value = socket.default_value
+    return (tuple(value) if hasattr(value, "__len__") else float(value)), False
+
+
+def analyse_material(material, settings: BakeSettings) -> MaterialPlan:
+    name = material.name if material else "(no material)"
+    bsdf = _surface_bsdf(material)
+    if bsdf is None:
+        reason = ("no material: Blender renders it diffuse grey" if material is None
+                  else "surface is not a Principled BSDF: treated as diffuse")
+        return MaterialPlan(name, 1.0, 0.0, False, 0, reason)
+    roughness, textured = _input_value(bsdf, "Roughness", 0.5)
+    metallic, _ = _input_value(bsdf, "Metallic", 0.0)
+    if textured:
+        return MaterialPlan(name, float(roughness), float(metallic), True,
+                            settings.sg_count or 16, "roughness is textured: treated as glossy")
+    glossy = roughness < GLOSSY_ROUGHNESS_MAX
+    count = (settings.sg_count or auto_sg_count(roughness)) if glossy else 0
+    reason = (f"roughness {roughness:.2f} < {GLOSSY_ROUGHNESS_MAX}: glossy, needs light-field SGs" if glossy else
+              f"roughness {roughness:.2f} >= {GLOSSY_ROUGHNESS_MAX}: irradiance only (lobe wider than ~40 deg)")
+    return MaterialPlan(name, float(roughness), float(metallic), glossy, count, reason)
+
+
+def _is_emissive(material) -> bool:
+    bsdf = _surface_bsdf(material)
+    if bsdf is None:
+        return False
+    strength, linked_s = _input_value(bsdf, "Emission Strength", 0.0)
+    color, linked_c = _input_value(bsdf, "Emission Color", (0, 0, 0, 1))
+    return (linked_s or strength > 0) and (linked_c or max(color[:3]) > 0)
+
+
+def _world_area(obj, depsgraph) -> float:
+    evaluated = obj.evaluated_get(depsgraph)
+    mesh = evaluated.to_mesh()
+    try:
+        if len(mesh.polygons) == 0:
+            return 0.0
+        mesh.calc_loop_triangles()
+        coords = np.empty(len(mesh.vertices) * 3, np.float64)
+        mesh.vertices.foreach_get("co", coords)
+        tris = np.empty(len(mesh.loop_triangles) * 3, np.int64)
+        mesh.loop_triangles.foreach_get("vertices", tris)
+        matrix = np.array(obj.matrix_world, dtype=np.float64)
+        world = coords.reshape(-1, 3) @ matrix[:3, :3].T + matrix[:3, 3]
+        a, b, c = (world[tris.reshape(-1, 3)[:, k]] for k in range(3))
+        return float(0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
+    finally:
+        evaluated.to_mesh_clear()
+
+
+def analyse_environment(scene) -> EnvironmentPlan:
+    world = scene.world
+    if world is None or not world.use_nodes or world.node_tree is None:
+        color = tuple(world.color) if world is not None else (0.0, 0.0, 0.0)
+        if max(color) <= 0:
+            return EnvironmentPlan(False, "none", False, False, 0, "no world: nothing to shadow")
+        chromatic = (max(color) - min(color)) / max(color) > ACHROMATIC_CHROMA_MAX
+        return EnvironmentPlan(True, "color", chromatic, True, 3 if chromatic else 1, "uniform world colour")
+    output = next((n for n in world.node_tree.nodes if n.type == "OUTPUT_WORLD" and n.is_active_output), None)
+    if output is None or not output.inputs["Surface"].is_linked:
+        return EnvironmentPlan(False, "none", False, False, 0, "world has no surface shader")
+    background = output.inputs["Surface"].links[0].from_node
+    strength, linked_strength = _input_value(background, "Strength", 1.0)
+    color_socket = background.inputs.get("Color")
+    if not linked_strength and strength <= 0:
+        return EnvironmentPlan(False, "none", False, False, 0, "world strength is 0: black environment")
+    if color_socket is not None and color_socket.is_linked:
+        source = color_socket.links[0].from_node
+        if source.type == "TEX_ENVIRONMENT" and source.image is not None:
+            chroma = _image_chroma(source.image)
+            chromatic = chroma > ACHROMATIC_CHROMA_MAX
+            return EnvironmentPlan(True, "hdri", chromatic, True, 3 if chromatic else 1,
+                                   f"HDRI '{source.image.name}', chroma {chroma:.3f}: "
+                                   + ("RGB" if chromatic else "mono") + " env visibility")
+        return EnvironmentPlan(True, "hdri", True, True, 3, "procedural world: RGB env visibility")
+    color = tuple(color_socket.default_value)[:3] if color_socket is not None else (1.0, 1.0, 1.0)
+    if max(color) <= 0:
+        return EnvironmentPlan(False, "none", False, False, 0, "world colour is black")
+    chromatic = (max(color) - min(color)) / max(color) > ACHROMATIC_CHROMA_MAX
+    return EnvironmentPlan(True, "color", chromatic, True, 3 if chromatic else 1,
+                           "uniform world colour: " + ("RGB" if chromatic else "mono") + " env visibility")
+
+
+def _image_chroma(image) -> float:
+    """Luminance-weighted mean of (max - min) / max over the image's finite, positive pixels."""
+    pixels = np.empty(image.size[0] * image.size[1] * image.channels, np.float32)
+    image.pixels.foreach_get(pixels)
+    rgb = pixels.reshape(-1, image.channels)[:, :3].astype(np.float64)
+    rgb = rgb[np.all(np.isfinite(rgb), axis=1)]
+    rgb = np.maximum(rgb, 0)
+    peak = rgb.max(axis=1)
+    lum = rgb @ np.array([0.2126, 0.7152, 0.0722])
+    valid = peak > 0
+    if not np.any(valid):
+        return 0.0
+    chroma = (peak[valid] - rgb[valid].min(axis=1)) / peak[valid]
+    return float(np.sum(chroma * lum[valid]) / max(np.sum(lum[valid]), 1e-30))
+
+
+def build_plan(scene, settings: BakeSettings) -> BakePlan:
+    """Analyse `scene` and decide what to bake. Raises BakeInputError with one clear message."""
+    window = bpy.context.window
+    previous = window.scene if window is not None else None
+    if window is not None and previous != scene:
+        window.scene = scene  # the evaluated depsgraph (modifiers applied) exists for the active scene only
+    try:
+        return _build_plan(scene, settings, bpy.context.evaluated_depsgraph_get())
+    finally:
+        if window is not None and previous is not None and window.scene != previous:
+            window.scene = previous
+
+
+def _build_plan(scene, settings: BakeSettings, depsgraph) -> BakePlan:
+    settings.validate()
+    visible = [o for o in scene.objects if not o.hide_render]
+    meshes = [o for o in visible if o.type == "MESH"]
+    if not meshes:
+        kinds = sorted({o.type.lower() for o in visible})
+        raise BakeInputError("nothing to bake: the scene has no mesh objects"
+                             + (f" (only {', '.join(kinds)})" if kinds else " (it is empty)"))
+    objects, emissive, warnings = [], [], []
+    for obj in meshes:
+        mats = [slot.material for slot in obj.material_slots] or [None]
+        mat_plans = [analyse_material(m, settings) for m in mats]
+        if any(_is_emissive(m) for m in mats if m is not None):
+            emissive.append(obj.name)
+        area = _world_area(obj, depsgraph)
+        glossy = any(mp.glossy for mp in mat_plans)
+        if area <= 0:
+            warnings.append(f"'{obj.name}': no faces with area, skipped")
+            objects.append(ObjectPlan(obj.name, 0.0, 0, False, mat_plans, "no faces with area"))
+            continue
+        texels = int(np.ceil(area * settings.texel_density**2)) if glossy else 0
+        reason = ("glossy material(s): " + ", ".join(mp.name for mp in mat_plans if mp.glossy)) if glossy \
+            else "no glossy material: irradiance only"
+        objects.append(ObjectPlan(obj.name, round(area, 6), texels, glossy, mat_plans, reason))
+    if not any(o.bake_lightfield for o in objects):
+        raise BakeInputError("nothing to bake: no mesh has a glossy material (roughness below "
+                             f"{GLOSSY_ROUGHNESS_MAX}); the light field would not be used")
+    lamps = [o.name for o in visible if o.type == "LIGHT" and o.data.energy > 0]
+    hair = [o.name for o in visible if o.type == "CURVES"]
+    environment = analyse_environment(scene)
+    if not lamps and not emissive and not environment.present:
+        warnings.append("no lamps, emissive meshes or environment: the bake will be black")
+    return BakePlan(scene=scene.name, settings=settings, objects=objects, environment=environment, lamps=lamps,
+                    emissive_objects=emissive, hair_objects=hair, warnings=warnings)

@@ -1,0 +1,157 @@
+"""SG Lightfield bake from the command line: the same pipeline as the panel's button.
+
+    python headless/bake.py (--blend scene.blend | --scene demo:NAME) --out DIR [options]
+    blender -b scene.blend -P headless/bake.py -- --out DIR [options]
+
+Exit code 0 on success; otherwise one line 'error: ...' on stderr and exit code 1 (bad input) or
+2 (bad arguments). Stages available so far: plan (capture, render, train, apply, evaluate follow).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+if __package__ in (None, ""):  # run as a script: make the repository importable
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from shaders.bake_plan import PRESETS, BakeInputError, BakeSettings, write_json_atomic  # noqa: E402
+
+ALL_STAGES = ("capture", "render", "train", "apply", "evaluate")
+IMPLEMENTED_STAGES = ()  # the plan is always made; stages are added here as they land
+
+
+def script_args(argv: list[str]) -> list[str]:
+    """Arguments meant for this script: everything after '--' when Blender runs it with -P."""
+    return argv[argv.index("--") + 1:] if "--" in argv else argv[1:]
+
+
+def parse_args(args: list[str]) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="headless/bake.py", description="Bake an SG light field.")
+    source = p.add_mutually_exclusive_group()
+    source.add_argument("--blend", type=Path, help="the .blend to bake (never modified unless --in-place)")
+    source.add_argument("--scene", help="an embedded demo scene, e.g. demo:spheres")
+    p.add_argument("--out", type=Path, required=True, help="bake directory")
+    p.add_argument("--preset", default="draft", choices=sorted(PRESETS), help="quality preset")
+    p.add_argument("--stages", default=",".join(ALL_STAGES), help="comma-separated subset of " + ",".join(ALL_STAGES))
+    p.add_argument("--texel-density", type=float)
+    p.add_argument("--lightfield-resolution", type=int)
+    p.add_argument("--samples", type=int)
+    p.add_argument("--sg-count", type=int, help="0 = automatic per material")
+    p.add_argument("--training-budget", type=float, dest="training_budget_s")
+    p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
+    p.add_argument("--plan-only", action="store_true", help="print the bake plan and stop")
+    p.add_argument("--json", action="store_true", help="one JSON object per line on stdout instead of text")
+    ns = p.parse_args(args)
+    stages = [s.strip() for s in ns.stages.split(",") if s.strip()]
+    unknown = [s for s in stages if s not in ALL_STAGES]
+    if unknown:
+        p.error(f"unknown stage(s) {unknown}; choose from {', '.join(ALL_STAGES)}")
+    ns.stages = stages
+    return ns
+
+
+class Reporter:
+    """Progress and results: text for people, one JSON object per line for machines."""
+
+    def __init__(self, as_json: bool):
+        self.as_json = as_json
+
+    def event(self, kind: str, **fields):
+        if self.as_json:
+            print(json.dumps({"event": kind, "time": round(time.time(), 3), **fields}), flush=True)
+        elif kind == "plan":
+            print(f"plan: {fields['summary']}")
+            for line in fields.get("decisions", []):
+                print(f"  - {line}")
+            for warning in fields.get("warnings", []):
+                print(f"  ! {warning}")
+        elif kind == "done":
+            print(f"done: {fields.get('message', '')}")
+        elif kind == "stage":
+            print(f"{fields['stage']}: {fields.get('message', '')}")
+
+
+def load_scene(ns):
+    import bpy
+
+    if ns.scene:
+        from blender_addon.demo_scenes import build_demo_scene
+
+        try:
+            scene = build_demo_scene(ns.scene)
+        except ValueError as exc:
+            raise BakeInputError(str(exc)) from exc
+    elif ns.blend:
+        path = ns.blend.expanduser().resolve()
+        if not path.is_file():
+            raise BakeInputError(f"{ns.blend}: .blend file not found")
+        try:
+            bpy.ops.wm.open_mainfile(filepath=str(path), load_ui=False)
+        except RuntimeError as exc:
+            raise BakeInputError(f"{ns.blend}: cannot open ({str(exc).strip().splitlines()[-1]})") from exc
+        scene = bpy.context.scene
+    else:
+        scene = bpy.context.scene  # blender -b scene.blend -P headless/bake.py
+        if scene is None:
+            raise BakeInputError("no scene: pass --blend FILE or --scene demo:NAME")
+    if bpy.context.window is not None:
+        bpy.context.window.scene = scene
+    return scene
+
+
+def plan_decisions(plan) -> list[str]:
+    lines = []
+    for obj in plan.objects:
+        lines.append(f"{obj.name}: {'bake' if obj.bake_lightfield else 'skip'} ({obj.reason}; {obj.texels} texels)")
+    env = plan.environment
+    lines.append(f"environment: {env.reason}")
+    if plan.lamps or plan.emissive_objects:
+        lines.append(f"light sources: lamps {plan.lamps or 'none'}, emissive meshes {plan.emissive_objects or 'none'}")
+    lines.append("hair: " + (f"filter offered for {plan.hair_objects}" if plan.hair_objects else "no hair curves"))
+    return lines
+
+
+def run(ns, reporter: Reporter) -> int:
+    from blender_addon.scene_analysis import build_plan
+
+    settings = BakeSettings.from_preset(
+        ns.preset, texel_density=ns.texel_density, lightfield_resolution=ns.lightfield_resolution,
+        samples=ns.samples, sg_count=ns.sg_count, training_budget_s=ns.training_budget_s, device=ns.device)
+    out = ns.out.expanduser().resolve()
+    if out.exists() and not out.is_dir():
+        raise BakeInputError(f"{ns.out}: exists and is not a directory")
+    scene = load_scene(ns)
+    plan = build_plan(scene, settings)
+    data = plan.to_dict()
+    write_json_atomic(out / "plan.json", data)
+    reporter.event("plan", summary=data["summary"], hash=data["hash"], texels=data["texels"],
+                   decisions=plan_decisions(plan), warnings=plan.warnings, path=str(out / "plan.json"))
+    if ns.plan_only:
+        reporter.event("done", message=f"plan written to {out / 'plan.json'}", ok=True)
+        return 0
+    missing = [s for s in ns.stages if s not in IMPLEMENTED_STAGES]
+    if missing:
+        raise BakeInputError(f"stage(s) {', '.join(missing)} not available in this version yet; "
+                             "use --plan-only (or --stages with available stages)")
+    reporter.event("done", message=f"bake directory {out}", ok=True)
+    return 0
+
+
+def main(argv=None) -> int:
+    argv = sys.argv if argv is None else argv
+    ns = parse_args(script_args(argv))
+    reporter = Reporter(ns.json)
+    try:
+        return run(ns, reporter)
+    except BakeInputError as exc:
+        if ns.json:
+            reporter.event("error", message=str(exc))
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

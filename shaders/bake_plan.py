@@ -1,0 +1,192 @@
+"""The bake plan and settings: plain dataclasses, JSON round trip, a content hash.
+
+Pure Python (no bpy, no torch): the plan is the contract every stage reads from ``plan.json``.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+PLAN_VERSION = 1
+
+# A material is 'glossy' (gets light-field SGs) below this Principled roughness. At 0.6 the warped
+# GGX lobe (alpha = 0.36, sharpness 2/alpha^2/8 = 1.9) is ~40 degrees wide: its view dependence is
+# well below what irradiance alone misses, so rougher materials get diffuse irradiance only.
+GLOSSY_ROUGHNESS_MAX = 0.6
+
+# Provisional defaults; the evaluate issue replaces them with measured values.
+PRESETS = {
+    "draft": dict(texel_density=4.0, lightfield_resolution=16, samples=16, sg_count=8, training_budget_s=60.0),
+    "preview": dict(texel_density=8.0, lightfield_resolution=32, samples=64, sg_count=12, training_budget_s=300.0),
+    "production": dict(texel_density=16.0, lightfield_resolution=64, samples=256, sg_count=16,
+                       training_budget_s=1800.0),
+}
+
+# Rays per second of the atlas render on this machine class (DESIGN section 4: 4096 texels x 16^2 px x
+# 16 spp, upper hemisphere only, in 9.4 s on 2 cores). Replaced by the render benchmark's figure.
+ATLAS_RAYS_PER_SECOND_CPU = 4096 * 16 * 16 * 16 / 2 / 9.4
+
+
+class BakeInputError(ValueError):
+    """The scene or the settings cannot be baked; the message says why and names the object."""
+
+
+@dataclass
+class BakeSettings:
+    preset: str = "draft"
+    texel_density: float = 4.0  # texels per metre
+    lightfield_resolution: int = 16  # octahedral R
+    samples: int = 16
+    sg_count: int = 8  # 0 = automatic per material
+    training_budget_s: float = 60.0
+    device: str = "cpu"
+
+    @classmethod
+    def from_preset(cls, name: str, **overrides):
+        key = name.lower()
+        if key not in PRESETS:
+            raise BakeInputError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
+        values = {**PRESETS[key], **{k: v for k, v in overrides.items() if v is not None}}
+        settings = cls(preset=key, **values)
+        settings.validate()
+        return settings
+
+    def validate(self):
+        checks = [
+            (0.01 <= self.texel_density <= 4096, f"texel density {self.texel_density} texels/m is outside 0.01..4096"),
+            (8 <= self.lightfield_resolution <= 128,
+             f"light-field resolution {self.lightfield_resolution} is outside 8..128"),
+            (1 <= self.samples <= 65536, f"samples {self.samples} is outside 1..65536"),
+            (0 <= self.sg_count <= 64, f"SG count {self.sg_count} is outside 0 (auto)..64"),
+            (1 <= self.training_budget_s <= 7 * 24 * 3600, f"training budget {self.training_budget_s} s is outside 1 s..7 days"),
+            (self.device in ("cpu", "cuda"), f"device {self.device!r} is not 'cpu' or 'cuda'"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise BakeInputError(message)
+
+
+@dataclass
+class MaterialPlan:
+    name: str
+    roughness: float
+    metallic: float
+    glossy: bool
+    sg_count: int
+    reason: str
+
+
+@dataclass
+class ObjectPlan:
+    name: str
+    area_m2: float
+    texels: int
+    bake_lightfield: bool
+    materials: list[MaterialPlan] = field(default_factory=list)
+    reason: str = ""
+
+
+@dataclass
+class EnvironmentPlan:
+    present: bool
+    kind: str  # none | color | hdri
+    chromatic: bool
+    iwev: bool
+    iwev_channels: int
+    reason: str
+
+
+@dataclass
+class BakePlan:
+    scene: str
+    settings: BakeSettings
+    objects: list[ObjectPlan]
+    environment: EnvironmentPlan
+    lamps: list[str]
+    emissive_objects: list[str]
+    hair_objects: list[str]
+    warnings: list[str] = field(default_factory=list)
+    version: int = PLAN_VERSION
+
+    @property
+    def baked_objects(self):
+        return [o for o in self.objects if o.bake_lightfield]
+
+    @property
+    def texels(self) -> int:
+        return sum(o.texels for o in self.baked_objects)
+
+    @property
+    def max_sg_count(self) -> int:
+        return max((m.sg_count for o in self.baked_objects for m in o.materials if m.glossy), default=0)
+
+    def render_estimate_s(self) -> float:
+        r = self.settings.lightfield_resolution
+        rays = self.texels * r * r * self.settings.samples / 2  # upper hemisphere only
+        if self.environment.iwev:
+            rays += self.texels * r * r / 2  # one primary ray per pixel for L_E * V
+        return rays / ATLAS_RAYS_PER_SECOND_CPU
+
+    def summary(self) -> str:
+        glossy = len(self.baked_objects)
+        parts = [f"{glossy} glossy object{'s' if glossy != 1 else ''}",
+                 f"{self.max_sg_count} SGs" if glossy else "no light-field SGs",
+                 f"env visibility {'on (' + ('RGB' if self.environment.iwev_channels == 3 else 'mono') + ')' if self.environment.iwev else 'off'}",
+                 f"hair {'offered' if self.hair_objects else 'off'}",
+                 f"{self.texels} texels", f"render ~{self.render_estimate_s():.0f} s",
+                 f"training <= {self.settings.training_budget_s:.0f} s"]
+        return ", ".join(parts)
+
+    def to_dict(self) -> dict:
+        data = asdict(self)
+        data["summary"] = self.summary()
+        data["texels"] = self.texels
+        data["render_estimate_s"] = round(self.render_estimate_s(), 3)
+        data["hash"] = self.content_hash()
+        return data
+
+    def content_hash(self) -> str:
+        """sha256 of what the bake depends on (settings, objects, environment, lights); stages store it
+        and refuse inputs from another plan."""
+        payload = json.dumps(asdict(self), sort_keys=True, separators=(",", ":")).encode()
+        return hashlib.sha256(payload).hexdigest()[:16]
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "BakePlan":
+        objects = [ObjectPlan(**{**o, "materials": [MaterialPlan(**mp) for mp in o["materials"]]})
+                   for o in data["objects"]]
+        plan = cls(scene=data["scene"], settings=BakeSettings(**data["settings"]), objects=objects,
+                   environment=EnvironmentPlan(**data["environment"]), lamps=list(data["lamps"]),
+                   emissive_objects=list(data["emissive_objects"]), hair_objects=list(data["hair_objects"]),
+                   warnings=list(data.get("warnings", [])), version=data.get("version", PLAN_VERSION))
+        if "hash" in data and data["hash"] != plan.content_hash():
+            raise BakeInputError("plan.json was edited or is corrupt: its hash does not match its content")
+        return plan
+
+
+def write_json_atomic(path, data) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(data, f, indent=2, sort_keys=True)
+            f.write("\n")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def auto_sg_count(roughness: float) -> int:
+    """Provisional rule: smoother materials need more lobes (replaced by a measured rule in training)."""
+    if roughness <= 0.25:
+        return 16
+    if roughness <= 0.45:
+        return 12
+    return 8

@@ -1,0 +1,152 @@
+"""Bake plan on the demo scenes and bad input, and headless/bake.py as a user runs it (real bpy)."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import bpy  # noqa: I001  (bmesh exists only once bpy is imported)
+import bmesh
+import pytest
+
+from blender_addon.demo_scenes import build_demo_scene
+from blender_addon.scene_analysis import build_plan
+from headless.bake import parse_args, script_args
+from shaders.bake_plan import BakeInputError, BakePlan, BakeSettings
+
+REPO = Path(__file__).resolve().parent.parent
+DRAFT = BakeSettings.from_preset("draft")
+
+
+def test_spheres_plan_models_only_what_the_scene_requires():
+    plan = build_plan(build_demo_scene("demo:spheres"), DRAFT)
+    baked = {o.name for o in plan.baked_objects}
+    assert baked == {"Sphere r0.2", "Sphere r0.3", "Sphere r0.4", "Sphere r0.5"}
+    assert not plan.environment.iwev  # black world: no environment visibility
+    assert sorted(plan.emissive_objects) == ["Arc 0", "Arc 1", "Arc 2"] and plan.lamps == []
+    assert plan.hair_objects == [] and "hair off" in plan.summary()
+
+
+def test_room_and_courtyard_plans():
+    room = build_plan(build_demo_scene("room"), DRAFT)
+    assert {o.name for o in room.baked_objects} >= {"Glossy Sphere"}
+    assert room.lamps == ["Lamp"] and "Light Panel" in room.emissive_objects
+    assert not room.environment.iwev
+    court = build_plan(build_demo_scene("courtyard"), DRAFT)
+    assert court.environment.kind == "hdri" and court.environment.iwev
+    assert court.environment.iwev_channels in (1, 3)
+
+
+def test_plan_json_roundtrip_and_tamper_detection():
+    plan = build_plan(build_demo_scene("spheres"), DRAFT)
+    data = json.loads(json.dumps(plan.to_dict()))
+    assert BakePlan.from_dict(data).content_hash() == data["hash"]
+    data["settings"]["samples"] = 999
+    with pytest.raises(BakeInputError, match="hash"):
+        BakePlan.from_dict(data)
+
+
+def _scene_with(*objects):
+    scene = bpy.data.scenes.new("bad input")
+    for obj in objects:
+        scene.collection.objects.link(obj)
+    return scene
+
+
+def _mesh(name, build, material=None):
+    mesh = bpy.data.meshes.new(name)
+    bm = bmesh.new()
+    build(bm)
+    bm.to_mesh(mesh)
+    bm.free()
+    if material is not None:
+        mesh.materials.append(material)
+    return bpy.data.objects.new(name, mesh)
+
+
+def test_empty_scene_is_one_clear_error():
+    with pytest.raises(BakeInputError, match="no mesh objects .*empty"):
+        build_plan(_scene_with(), DRAFT)
+
+
+def test_cameras_and_empties_only():
+    cam = bpy.data.objects.new("Cam", bpy.data.cameras.new("Cam"))
+    empty = bpy.data.objects.new("Empty", None)
+    with pytest.raises(BakeInputError, match="only camera, empty"):
+        build_plan(_scene_with(cam, empty), DRAFT)
+
+
+def test_no_glossy_material_and_no_material():
+    rough = bpy.data.materials.new("rough")
+    rough.use_nodes = True
+    next(n for n in rough.node_tree.nodes if n.type == "BSDF_PRINCIPLED").inputs["Roughness"].default_value = 0.9
+    cube = _mesh("Rough Cube", lambda bm: bmesh.ops.create_cube(bm, size=1.0), rough)
+    bare = _mesh("No Material", lambda bm: bmesh.ops.create_cube(bm, size=1.0))
+    with pytest.raises(BakeInputError, match="no mesh has a glossy material"):
+        build_plan(_scene_with(cube, bare), DRAFT)
+
+
+def test_zero_area_and_loose_vertices_are_skipped_with_a_warning():
+    glossy = bpy.data.materials.new("glossy")
+    glossy.use_nodes = True
+    next(n for n in glossy.node_tree.nodes if n.type == "BSDF_PRINCIPLED").inputs["Roughness"].default_value = 0.2
+    ok = _mesh("Good", lambda bm: bmesh.ops.create_cube(bm, size=1.0), glossy)
+
+    def loose(bm):
+        for i in range(3):
+            bm.verts.new((i, 0, 0))
+
+    verts_only = _mesh("Loose Verts", loose, glossy)
+    plan = build_plan(_scene_with(ok, verts_only), DRAFT)
+    assert [o.name for o in plan.baked_objects] == ["Good"]
+    assert any("Loose Verts" in w for w in plan.warnings)
+    assert plan.baked_objects[0].texels == int(6 * DRAFT.texel_density**2)
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (dict(texel_density=1e9), "texel density"), (dict(lightfield_resolution=4), "resolution"),
+    (dict(samples=0), "samples"), (dict(sg_count=999), "SG count"), (dict(device="tpu"), "device")])
+def test_absurd_settings_are_rejected(overrides, message):
+    with pytest.raises(BakeInputError, match=message):
+        BakeSettings.from_preset("draft", **overrides)
+
+
+def test_blender_style_arguments_after_double_dash():
+    argv = ["blender", "-b", "scene.blend", "-P", "headless/bake.py", "--", "--out", "/tmp/x", "--plan-only"]
+    assert script_args(argv) == ["--out", "/tmp/x", "--plan-only"]
+    ns = parse_args(script_args(argv))
+    assert ns.plan_only and ns.out == Path("/tmp/x") and ns.stages == ["capture", "render", "train", "apply", "evaluate"]
+
+
+def _bake(*args):
+    return subprocess.run([sys.executable, str(REPO / "headless" / "bake.py"), *args], capture_output=True, text=True,
+                          cwd=REPO)
+
+
+def test_cli_plan_only_json_lines_parse(tmp_path):
+    out = _bake("--scene", "demo:spheres", "--out", str(tmp_path / "bake"), "--plan-only", "--json")
+    assert out.returncode == 0, out.stderr
+    events = [json.loads(line) for line in out.stdout.splitlines() if line.strip()]
+    assert [e["event"] for e in events] == ["plan", "done"]
+    plan = json.loads((tmp_path / "bake" / "plan.json").read_text())
+    assert plan["hash"] == events[0]["hash"] and plan["texels"] > 0
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--blend", "/nonexistent/scene.blend"], "scene.blend: .blend file not found"),
+    (["--scene", "demo:nope"], "unknown demo scene"),
+])
+def test_cli_bad_input_is_one_line_and_nonzero(tmp_path, args, message):
+    out = _bake(*args, "--out", str(tmp_path / "o"))
+    assert out.returncode == 1
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0]
+
+
+def test_cli_empty_blend_is_one_line_and_nonzero(tmp_path):
+    empty = tmp_path / "empty.blend"
+    code = ("import bpy; bpy.ops.wm.read_factory_settings(use_empty=True); "
+            f"bpy.ops.wm.save_as_mainfile(filepath={str(empty)!r})")
+    subprocess.run([sys.executable, "-c", code], check=True, capture_output=True)
+    out = _bake("--blend", str(empty), "--out", str(tmp_path / "o"))
+    assert out.returncode == 1
+    assert out.stderr.strip().splitlines() == ["error: nothing to bake: the scene has no mesh objects (it is empty)"]
