@@ -75,10 +75,15 @@ def test_cameras_and_empties_only():
         build_plan(_scene_with(cam, empty), DRAFT)
 
 
+def _material(name, roughness):
+    mat = bpy.data.materials.new(name)
+    mat.use_nodes = True
+    next(n for n in mat.node_tree.nodes if n.type == "BSDF_PRINCIPLED").inputs["Roughness"].default_value = roughness
+    return mat
+
+
 def test_no_glossy_material_and_no_material():
-    rough = bpy.data.materials.new("rough")
-    rough.use_nodes = True
-    next(n for n in rough.node_tree.nodes if n.type == "BSDF_PRINCIPLED").inputs["Roughness"].default_value = 0.9
+    rough = _material("rough", 0.9)
     cube = _mesh("Rough Cube", lambda bm: bmesh.ops.create_cube(bm, size=1.0), rough)
     bare = _mesh("No Material", lambda bm: bmesh.ops.create_cube(bm, size=1.0))
     with pytest.raises(BakeInputError, match="no mesh has a glossy material"):
@@ -86,9 +91,7 @@ def test_no_glossy_material_and_no_material():
 
 
 def test_zero_area_and_loose_vertices_are_skipped_with_a_warning():
-    glossy = bpy.data.materials.new("glossy")
-    glossy.use_nodes = True
-    next(n for n in glossy.node_tree.nodes if n.type == "BSDF_PRINCIPLED").inputs["Roughness"].default_value = 0.2
+    glossy = _material("glossy", 0.2)
     ok = _mesh("Good", lambda bm: bmesh.ops.create_cube(bm, size=1.0), glossy)
 
     def loose(bm):
