@@ -16,6 +16,11 @@ import bmesh
 import bpy
 from mathutils import Matrix, Vector
 
+try:  # inside the installed extension the numpy side is a sibling package
+    from ..shaders.bake_plan import BakeInputError
+except ImportError:  # bpy as a module with the repository on sys.path
+    from shaders.bake_plan import BakeInputError
+
 DEMO_SCENES = ("spheres", "room", "courtyard")
 DEMO_PREFIX = "demo:"
 
@@ -199,7 +204,7 @@ def build_demo_scene(name: str):
     """A new scene holding the demo `name` (with or without the 'demo:' prefix); returns the scene."""
     key = name[len(DEMO_PREFIX):] if name.startswith(DEMO_PREFIX) else name
     if key not in _BUILDERS:
-        raise ValueError(f"unknown demo scene {name!r}; choose one of: "
+        raise BakeInputError(f"unknown demo scene {name!r}; choose one of: "
                          + ", ".join(DEMO_PREFIX + n for n in DEMO_SCENES))
     scene = _new_scene(f"SG demo {key}")
     _BUILDERS[key](scene)

@@ -86,14 +86,20 @@ def _world_area(obj, depsgraph) -> float:
         evaluated.to_mesh_clear()
 
 
+def _uniform_colour_environment(color, black_reason: str) -> EnvironmentPlan:
+    color = tuple(color)[:3]
+    if max(color) <= 0:
+        return EnvironmentPlan(False, "none", False, False, 0, black_reason)
+    chromatic = (max(color) - min(color)) / max(color) > ACHROMATIC_CHROMA_MAX
+    return EnvironmentPlan(True, "color", chromatic, True, 3 if chromatic else 1,
+                           "uniform world colour: " + ("RGB" if chromatic else "mono") + " env visibility")
+
+
 def analyse_environment(scene) -> EnvironmentPlan:
     world = scene.world
     if world is None or not world.use_nodes or world.node_tree is None:
-        color = tuple(world.color) if world is not None else (0.0, 0.0, 0.0)
-        if max(color) <= 0:
-            return EnvironmentPlan(False, "none", False, False, 0, "no world: nothing to shadow")
-        chromatic = (max(color) - min(color)) / max(color) > ACHROMATIC_CHROMA_MAX
-        return EnvironmentPlan(True, "color", chromatic, True, 3 if chromatic else 1, "uniform world colour")
+        color = world.color if world is not None else (0.0, 0.0, 0.0)
+        return _uniform_colour_environment(color, "no world: nothing to shadow")
     output = next((n for n in world.node_tree.nodes if n.type == "OUTPUT_WORLD" and n.is_active_output), None)
     if output is None or not output.inputs["Surface"].is_linked:
         return EnvironmentPlan(False, "none", False, False, 0, "world has no surface shader")
@@ -111,12 +117,8 @@ def analyse_environment(scene) -> EnvironmentPlan:
                                    f"HDRI '{source.image.name}', chroma {chroma:.3f}: "
                                    + ("RGB" if chromatic else "mono") + " env visibility")
         return EnvironmentPlan(True, "hdri", True, True, 3, "procedural world: RGB env visibility")
-    color = tuple(color_socket.default_value)[:3] if color_socket is not None else (1.0, 1.0, 1.0)
-    if max(color) <= 0:
-        return EnvironmentPlan(False, "none", False, False, 0, "world colour is black")
-    chromatic = (max(color) - min(color)) / max(color) > ACHROMATIC_CHROMA_MAX
-    return EnvironmentPlan(True, "color", chromatic, True, 3 if chromatic else 1,
-                           "uniform world colour: " + ("RGB" if chromatic else "mono") + " env visibility")
+    color = color_socket.default_value if color_socket is not None else (1.0, 1.0, 1.0)
+    return _uniform_colour_environment(color, "world colour is black")
 
 
 def _image_chroma(image) -> float:

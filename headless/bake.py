@@ -70,8 +70,6 @@ class Reporter:
                 print(f"  ! {warning}")
         elif kind == "done":
             print(f"done: {fields.get('message', '')}")
-        elif kind == "stage":
-            print(f"{fields['stage']}: {fields.get('message', '')}")
 
 
 def load_scene(ns):
@@ -80,10 +78,7 @@ def load_scene(ns):
     if ns.scene:
         from blender_addon.demo_scenes import build_demo_scene
 
-        try:
-            scene = build_demo_scene(ns.scene)
-        except ValueError as exc:
-            raise BakeInputError(str(exc)) from exc
+        scene = build_demo_scene(ns.scene)
     elif ns.blend:
         path = ns.blend.expanduser().resolve()
         if not path.is_file():
