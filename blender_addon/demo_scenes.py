@@ -6,6 +6,8 @@ Selectable everywhere as ``demo:NAME``: ``build_demo_scene("room")`` returns a n
   room       closed room, coloured walls, glossy floor, a glossy and a rough object, an emissive
              ceiling panel and one point lamp.
   courtyard  objects that occlude each other under Blender's shipped courtyard HDRI.
+  hair       a head-like mesh with a groom made by Blender's shipped procedural hair node assets;
+             ``hair-straight``, ``hair-wavy`` (= ``hair``), ``hair-curly`` and ``hair-clumped`` pick the style.
 """
 from __future__ import annotations
 
@@ -18,10 +20,13 @@ from mathutils import Matrix, Vector
 
 try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.bake_plan import BakeInputError
+    from .scene_analysis import enable_nodes
 except ImportError:  # bpy as a module with the repository on sys.path
+    from blender_addon.scene_analysis import enable_nodes
     from shaders.bake_plan import BakeInputError
 
-DEMO_SCENES = ("spheres", "room", "courtyard")
+DEMO_SCENES = ("spheres", "room", "courtyard", "hair")
+HAIR_STYLES = ("straight", "wavy", "curly", "clumped")
 DEMO_PREFIX = "demo:"
 
 
@@ -33,9 +38,26 @@ def shipped_hdri(name: str) -> str:
     return path
 
 
+def shipped_hair_node_group(name: str):
+    """A node group from Blender's shipped procedural hair assets (appended once, reused afterwards)."""
+    existing = bpy.data.node_groups.get(name)
+    if existing is not None and existing.library is None and existing.get("sglf_shipped_asset"):
+        return existing
+    path = os.path.join(bpy.utils.system_resource("DATAFILES"), "assets", "nodes", "procedural_hair_node_assets.blend")
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"Blender's procedural hair node assets not found at {path}")
+    with bpy.data.libraries.load(path) as (source, target):
+        if name not in source.node_groups:
+            raise KeyError(f"node group {name!r} is not among Blender's procedural hair assets")
+        target.node_groups = [name]
+    group = target.node_groups[0]
+    group["sglf_shipped_asset"] = True
+    return group
+
+
 def _principled(name, color=(0.8, 0.8, 0.8), roughness=0.5, metallic=0.0, emission=None, strength=0.0):
     mat = bpy.data.materials.new(name)
-    mat.use_nodes = True
+    enable_nodes(mat)
     bsdf = next(n for n in mat.node_tree.nodes if n.type == "BSDF_PRINCIPLED")
     bsdf.inputs["Base Color"].default_value = (*color, 1.0)
     bsdf.inputs["Roughness"].default_value = roughness
@@ -49,6 +71,7 @@ def _principled(name, color=(0.8, 0.8, 0.8), roughness=0.5, metallic=0.0, emissi
 def _mesh_object(scene, name, build, material, matrix=Matrix.Identity(4)):
     mesh = bpy.data.meshes.new(name)
     bm = bmesh.new()
+    bm.loops.layers.uv.new("UVMap")  # the user's own UV map (bmesh fills it where calc_uvs is asked for)
     build(bm)
     bm.to_mesh(mesh)
     bm.free()
@@ -113,7 +136,7 @@ def _camera(scene, location, target, lens=35.0):
 
 def _world(scene, color=(0.0, 0.0, 0.0), strength=1.0, hdri=None):
     world = bpy.data.worlds.new(f"{scene.name} World")
-    world.use_nodes = True
+    enable_nodes(world)
     nodes, links = world.node_tree.nodes, world.node_tree.links
     background = next(n for n in nodes if n.type == "BACKGROUND")
     background.inputs["Color"].default_value = (*color, 1.0)
@@ -197,15 +220,94 @@ def build_courtyard(scene):
     _camera(scene, (3.5, -5.5, 2.5), (-0.3, 0.0, 0.8), lens=30.0)
 
 
-_BUILDERS = {"spheres": build_spheres, "room": build_room, "courtyard": build_courtyard}
+# Modifier stacks per style: (asset node group, {input name: value}) after Generate Hair Curves.
+_HAIR_STYLE_STACKS = {
+    "straight": [("Hair Curves Noise", {"Distance": 0.002, "Scale": 4.0})],
+    "wavy": [("Hair Curves Noise", {"Distance": 0.02, "Scale": 2.0, "Shape": 0.8})],
+    "curly": [("Curl Hair Curves", {"Radius": 0.012, "Frequency": 6.0, "Curl Start": 0.05,
+                                    "Existing Guide Map": False})],
+    "clumped": [("Clump Hair Curves", {"Shape": 0.7, "Guide Distance": 0.04, "Existing Guide Map": False}),
+                ("Hair Curves Noise", {"Distance": 0.005, "Scale": 6.0})],
+}
+
+
+def _set_modifier_inputs(modifier, values: dict, attributes: dict = ()):
+    sockets = {item.name: item.identifier for item in modifier.node_group.interface.items_tree
+               if item.item_type == "SOCKET" and item.in_out == "INPUT"}
+    for name, value in values.items():
+        modifier[sockets[name]] = value
+    for name, attribute in dict(attributes).items():
+        modifier[sockets[name] + "_use_attribute"] = True
+        modifier[sockets[name] + "_attribute_name"] = attribute
+
+
+def build_hair(scene, style="wavy"):
+    if style not in HAIR_STYLES:
+        raise BakeInputError(f"unknown hair style {style!r}; choose one of {', '.join(HAIR_STYLES)}")
+    skin = _principled("Skin", (0.8, 0.55, 0.45), roughness=0.45)
+    head = _mesh_object(scene, "Head", _sphere(0.1, 48, 24), skin,
+                        Matrix.Translation((0, 0, 1.6)) @ Matrix.Diagonal((0.85, 1.0, 1.1, 1.0)))
+
+    def scalp(bm):  # the upper back of the head, where hair grows
+        _sphere(0.1, 48, 24)(bm)
+        doomed = [v for v in bm.verts if v.co.z < -0.01 - 0.04 * max(0.0, -v.co.y / 0.1) and v.co.y < 0.06
+                  or v.co.y < -0.06 and v.co.z < 0.05]
+        bmesh.ops.delete(bm, geom=doomed, context="VERTS")
+
+    surface = _mesh_object(scene, "Scalp", scalp, skin, head.matrix_world.copy())
+    surface.hide_render = True  # only the surface the groom grows from; the head renders
+    surface.parent = head
+    surface.matrix_parent_inverse = head.matrix_world.inverted()
+    hair_material = bpy.data.materials.new("Hair")
+    enable_nodes(hair_material)
+    nodes = hair_material.node_tree.nodes
+    for node in list(nodes):
+        if node.type != "OUTPUT_MATERIAL":
+            nodes.remove(node)
+    bsdf = nodes.new("ShaderNodeBsdfHairPrincipled")
+    hair_material.node_tree.links.new(bsdf.outputs[0], nodes["Material Output"].inputs["Surface"])
+    curves = bpy.data.hair_curves.new(f"Hair {style}")
+    curves.materials.append(hair_material)
+    curves.surface = surface
+    curves.surface_uv_map = surface.data.uv_layers[0].name
+    hair = bpy.data.objects.new(f"Hair {style}", curves)
+    hair.matrix_world = surface.matrix_world.copy()
+    scene.collection.objects.link(hair)
+    generate = hair.modifiers.new("Generate Hair Curves", "NODES")
+    generate.node_group = shipped_hair_node_group("Generate Hair Curves")
+    _set_modifier_inputs(generate, {"Surface": surface, "Hair Length": 0.12, "Density": 30000.0, "Seed": 7,
+                                    "Hair Material": hair_material},
+                         {"Surface UV Map": curves.surface_uv_map})
+    for group_name, values in _HAIR_STYLE_STACKS[style]:
+        modifier = hair.modifiers.new(group_name, "NODES")
+        modifier.node_group = shipped_hair_node_group(group_name)
+        _set_modifier_inputs(modifier, values)
+    profile = hair.modifiers.new("Set Hair Curve Profile", "NODES")
+    profile.node_group = shipped_hair_node_group("Set Hair Curve Profile")
+    _set_modifier_inputs(profile, {"Radius": 0.0004})
+    key = bpy.data.lights.new("Key", type="AREA")
+    key.energy, key.size = 40.0, 0.5
+    key_obj = bpy.data.objects.new("Key", key)
+    key_obj.matrix_world = Matrix.Translation((0.6, -0.8, 2.2)) @ Matrix.Rotation(math.radians(50), 4, "X")
+    scene.collection.objects.link(key_obj)
+    _world(scene, color=(0.05, 0.05, 0.06), strength=1.0)
+    _camera(scene, (0.0, -0.75, 1.65), (0.0, 0.0, 1.62), lens=60.0)
+
+
+_BUILDERS = {"spheres": build_spheres, "room": build_room, "courtyard": build_courtyard, "hair": build_hair}
 
 
 def build_demo_scene(name: str):
     """A new scene holding the demo `name` (with or without the 'demo:' prefix); returns the scene."""
     key = name[len(DEMO_PREFIX):] if name.startswith(DEMO_PREFIX) else name
-    if key not in _BUILDERS:
+    base, _, variant = key.partition("-")
+    if base not in _BUILDERS or (variant and (base != "hair" or variant not in HAIR_STYLES)):
         raise BakeInputError(f"unknown demo scene {name!r}; choose one of: "
-                         + ", ".join(DEMO_PREFIX + n for n in DEMO_SCENES))
+                             + ", ".join(DEMO_PREFIX + n for n in DEMO_SCENES)
+                             + " (hair styles: " + ", ".join(f"hair-{s}" for s in HAIR_STYLES) + ")")
     scene = _new_scene(f"SG demo {key}")
-    _BUILDERS[key](scene)
+    if variant:
+        _BUILDERS[base](scene, variant)
+    else:
+        _BUILDERS[base](scene)
     return scene

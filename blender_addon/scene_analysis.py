@@ -4,6 +4,8 @@ Reads the scene only; never changes it.
 """
 from __future__ import annotations
 
+import contextlib
+
 import bpy
 import numpy as np
 
@@ -19,8 +21,20 @@ except ImportError:  # bpy as a module with the repository on sys.path
 ACHROMATIC_CHROMA_MAX = 0.05
 
 
+def uses_nodes(id_block) -> bool:
+    """Blender 5 always shades with the node tree (use_nodes is deprecated); older versions may not."""
+    if id_block is None or id_block.node_tree is None:
+        return False
+    return bpy.app.version >= (5, 0, 0) or id_block.use_nodes
+
+
+def enable_nodes(id_block) -> None:
+    if bpy.app.version < (5, 0, 0):
+        id_block.use_nodes = True
+
+
 def _surface_bsdf(material):
-    if material is None or not material.use_nodes or material.node_tree is None:
+    if not uses_nodes(material):
         return None
     output = next((n for n in material.node_tree.nodes if n.type == "OUTPUT_MATERIAL" and n.is_active_output), None)
     if output is None or not output.inputs["Surface"].is_linked:
@@ -56,6 +70,29 @@ def analyse_material(material, settings: BakeSettings) -> MaterialPlan:
     reason = (f"roughness {roughness:.2f} < {GLOSSY_ROUGHNESS_MAX}: glossy, needs light-field SGs" if glossy else
               f"roughness {roughness:.2f} >= {GLOSSY_ROUGHNESS_MAX}: irradiance only (lobe wider than ~40 deg)")
     return MaterialPlan(name, float(roughness), float(metallic), glossy, count, reason)
+
+
+def principled_surface(material) -> dict:
+    """Base colour, roughness, metallic and normal-incidence Fresnel F0 of a material's Principled BSDF,
+    as Blender 4+ defines them: F0 = mix(((ior-1)/(ior+1))^2 * 2 * specular_level * tint, base, metallic).
+    Materials without one render as Blender's default grey diffuse."""
+    bsdf = _surface_bsdf(material)
+    if bsdf is None:
+        return {"base_color": [0.8, 0.8, 0.8], "roughness": 1.0, "metallic": 0.0, "f0": [0.04, 0.04, 0.04],
+                "textured": False}
+    base, linked_base = _input_value(bsdf, "Base Color", (0.8, 0.8, 0.8, 1.0))
+    roughness, linked_rough = _input_value(bsdf, "Roughness", 0.5)
+    metallic, linked_metal = _input_value(bsdf, "Metallic", 0.0)
+    ior, _ = _input_value(bsdf, "IOR", 1.5)
+    level, _ = _input_value(bsdf, "Specular IOR Level", 0.5)
+    tint, _ = _input_value(bsdf, "Specular Tint", (1.0, 1.0, 1.0, 1.0))
+    base = np.clip(np.asarray(base[:3], float), 0.0, 1.0)
+    dielectric = min(((ior - 1) / (ior + 1)) ** 2 * 2 * level, 1.0) * np.clip(np.asarray(tint[:3], float), 0, 1)
+    metallic = float(np.clip(metallic, 0.0, 1.0))
+    f0 = (1 - metallic) * dielectric + metallic * base
+    return {"base_color": [float(c) for c in base], "roughness": float(np.clip(roughness, 0.0, 1.0)),
+            "metallic": metallic, "f0": [float(c) for c in f0],
+            "textured": bool(linked_base or linked_rough or linked_metal)}
 
 
 def _is_emissive(material) -> bool:
@@ -97,7 +134,7 @@ def _uniform_colour_environment(color, black_reason: str) -> EnvironmentPlan:
 
 def analyse_environment(scene) -> EnvironmentPlan:
     world = scene.world
-    if world is None or not world.use_nodes or world.node_tree is None:
+    if not uses_nodes(world):
         color = world.color if world is not None else (0.0, 0.0, 0.0)
         return _uniform_colour_environment(color, "no world: nothing to shadow")
     output = next((n for n in world.node_tree.nodes if n.type == "OUTPUT_WORLD" and n.is_active_output), None)
@@ -137,17 +174,25 @@ def _image_chroma(image) -> float:
     return float(np.sum(chroma * lum[valid]) / max(np.sum(lum[valid]), 1e-30))
 
 
-def build_plan(scene, settings: BakeSettings) -> BakePlan:
-    """Analyse `scene` and decide what to bake. Raises BakeInputError with one clear message."""
+@contextlib.contextmanager
+def active_scene(scene):
+    """Make `scene` the window's scene for the block: only the active scene has an evaluated depsgraph
+    (modifiers applied). The previous scene comes back afterwards, also on errors."""
     window = bpy.context.window
     previous = window.scene if window is not None else None
     if window is not None and previous != scene:
-        window.scene = scene  # the evaluated depsgraph (modifiers applied) exists for the active scene only
+        window.scene = scene
     try:
-        return _build_plan(scene, settings, bpy.context.evaluated_depsgraph_get())
+        yield bpy.context.evaluated_depsgraph_get()
     finally:
         if window is not None and previous is not None and window.scene != previous:
             window.scene = previous
+
+
+def build_plan(scene, settings: BakeSettings) -> BakePlan:
+    """Analyse `scene` and decide what to bake. Raises BakeInputError with one clear message."""
+    with active_scene(scene) as depsgraph:
+        return _build_plan(scene, settings, depsgraph)
 
 
 def _build_plan(scene, settings: BakeSettings, depsgraph) -> BakePlan:

@@ -3,8 +3,9 @@
     python headless/bake.py (--blend scene.blend | --scene demo:NAME) --out DIR [options]
     blender -b scene.blend -P headless/bake.py -- --out DIR [options]
 
-Exit code 0 on success; otherwise one line 'error: ...' on stderr and exit code 1 (bad input) or
-2 (bad arguments). Stages available so far: plan (capture, render, train, apply, evaluate follow).
+Exit code 0 on success; otherwise one line 'error: ...' on stderr and exit code 1 (bad input),
+2 (bad arguments) or 130 (cancelled). Stages available so far: the plan and capture (render, train,
+apply and evaluate follow).
 """
 from __future__ import annotations
 
@@ -17,10 +18,10 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script: make the repository importable
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from shaders.bake_plan import PRESETS, BakeInputError, BakeSettings, write_json_atomic  # noqa: E402
+from shaders.bake_plan import PRESETS, BakeCancelled, BakeInputError, BakeSettings, write_json_atomic  # noqa: E402
 
 ALL_STAGES = ("capture", "render", "train", "apply", "evaluate")
-IMPLEMENTED_STAGES = ()  # the plan is always made; stages are added here as they land
+IMPLEMENTED_STAGES = ("capture",)  # the plan is always made; stages are added here as they land
 
 
 def script_args(argv: list[str]) -> list[str]:
@@ -42,6 +43,8 @@ def parse_args(args: list[str]) -> argparse.Namespace:
     p.add_argument("--sg-count", type=int, help="0 = automatic per material")
     p.add_argument("--training-budget", type=float, dest="training_budget_s")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
+    p.add_argument("--lightmap-uv", default="", metavar="LAYER",
+                   help="use this existing UV layer as the lightmap (validated) instead of generating SGLightmap")
     p.add_argument("--plan-only", action="store_true", help="print the bake plan and stop")
     p.add_argument("--json", action="store_true", help="one JSON object per line on stdout instead of text")
     ns = p.parse_args(args)
@@ -56,8 +59,33 @@ def parse_args(args: list[str]) -> argparse.Namespace:
 class Reporter:
     """Progress and results: text for people, one JSON object per line for machines."""
 
-    def __init__(self, as_json: bool):
+    def __init__(self, as_json: bool, stream=None):
         self.as_json = as_json
+        self.stream = stream or sys.stderr
+        self._stage_start = {}
+        self.bar_open = False  # a progress line without its newline yet
+
+    def end_bar(self):
+        if self.bar_open:
+            print(file=self.stream, flush=True)
+            self.bar_open = False
+
+    def progress(self, stage: str, fraction: float, message: str = ""):
+        """A progress bar with ETA on stderr for people; a JSON line for machines."""
+        now = time.monotonic()
+        start = self._stage_start.setdefault(stage, now)
+        fraction = min(max(float(fraction), 0.0), 1.0)
+        eta = (now - start) * (1 - fraction) / fraction if fraction > 0 else None
+        if self.as_json:
+            self.event("progress", stage=stage, fraction=round(fraction, 4), message=message,
+                       eta_s=None if eta is None else round(eta, 1))
+            return
+        filled = int(round(24 * fraction))
+        eta_text = "ETA --" if eta is None else f"ETA {eta:4.0f}s"
+        end = "\n" if fraction >= 1 else ""
+        self.bar_open = fraction < 1
+        print(f"\r{stage:>8} [{'#' * filled}{'.' * (24 - filled)}] {100 * fraction:5.1f}% {eta_text}  {message[:48]:<48}",
+              end=end, file=self.stream, flush=True)
 
     def event(self, kind: str, **fields):
         if self.as_json:
@@ -66,6 +94,10 @@ class Reporter:
             print(f"plan: {fields['summary']}")
             for line in fields.get("decisions", []):
                 print(f"  - {line}")
+            for warning in fields.get("warnings", []):
+                print(f"  ! {warning}")
+        elif kind == "stage":
+            print(f"{fields['stage']}: {fields['summary']} ({fields['seconds']:.2f} s)")
             for warning in fields.get("warnings", []):
                 print(f"  ! {warning}")
         elif kind == "done":
@@ -130,8 +162,17 @@ def run(ns, reporter: Reporter) -> int:
     missing = [s for s in ns.stages if s not in IMPLEMENTED_STAGES]
     if missing:
         raise BakeInputError(f"stage(s) {', '.join(missing)} not available in this version yet; "
-                             "use --plan-only (or --stages with available stages)")
-    reporter.event("done", message=f"bake directory {out}", ok=True)
+                             f"available: {', '.join(IMPLEMENTED_STAGES)} (or --plan-only)")
+    if "capture" in ns.stages:
+        from blender_addon.capture import capture
+
+        result = capture(scene, plan, out, lightmap_uv_layer=ns.lightmap_uv,
+                         progress=lambda f, m: reporter.progress("capture", f, m))
+        reporter.event("stage", stage="capture", seconds=round(result.seconds, 3), texels=result.texels,
+                       summary=(f"{result.texels} texels in a {result.atlas_width}x{result.atlas_height} atlas, "
+                                f"{result.coverage_percent:.1f}% covered, {result.pushed_out_texels} pushed out, "
+                                f"{result.buried_texels} buried"), warnings=result.warnings)
+    reporter.event("done", message=f"bake directory {out} (report: {out / 'report.json'})", ok=True)
     return 0
 
 
@@ -142,9 +183,22 @@ def main(argv=None) -> int:
     try:
         return run(ns, reporter)
     except BakeInputError as exc:
+        reporter.end_bar()
         if ns.json:
             reporter.event("error", message=str(exc))
         print(f"error: {exc}", file=sys.stderr)
+        return 1
+    except (BakeCancelled, KeyboardInterrupt):
+        reporter.end_bar()
+        if ns.json:
+            reporter.event("error", message="cancelled")
+        print("error: cancelled; finished stages are kept and reused by the next run", file=sys.stderr)
+        return 130
+    except OSError as exc:  # full disk, permissions: one line naming the file
+        reporter.end_bar()
+        if ns.json:
+            reporter.event("error", message=str(exc))
+        print(f"error: {exc.filename or ''}: {exc.strerror or exc}", file=sys.stderr)
         return 1
 
 

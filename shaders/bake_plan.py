@@ -35,6 +35,10 @@ class BakeInputError(ValueError):
     """The scene or the settings cannot be baked; the message says why and names the object."""
 
 
+class BakeCancelled(Exception):
+    """The user cancelled; the stage left nothing incomplete that looks complete."""
+
+
 @dataclass
 class BakeSettings:
     preset: str = "draft"

@@ -1,0 +1,518 @@
+"""Capture stage: lightmap UVs (xatlas) and per-texel maps of every baked object (DESIGN section 2).
+
+What it changes in the scene: one UV layer ``SGLightmap`` on each baked mesh (made by xatlas, never
+one of the user's layers; ``remove_lightmap_uvs`` takes it away again) and one custom property
+``sglf_lightmap_rect`` per baked object: (u0, v0, su, sv) mapping that mesh layout into the object's
+own tile of the shared atlas, so linked duplicates keep sharing their mesh yet get texels of their own.
+
+What it writes to the bake directory:
+  texels.exr    float32 atlas maps (channels in TEXEL_CHANNELS), row 0 = top = v near 1
+  texels.json   atlas size, object and material tables, counts, the plan hash
+  capture_position.png / capture_normal.png / capture_validity.png   pictures for the report
+
+Normals: both are stored. ``Ng`` (geometric, from the triangle, outward even under negative scale)
+decides the hemisphere the light field covers and the ray-origin offset: light cannot arrive from
+below the real surface, and rays leaving along a smoothed normal would start inside the mesh. ``N``
+(interpolated shading normal) is what the material shades with, so apply and evaluate use it.
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import bpy
+import numpy as np
+from mathutils import Vector
+from mathutils.bvhtree import BVHTree
+
+try:  # inside the installed extension the numpy side is a sibling package
+    from ..shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
+    from ..shaders.bake_report import update_report
+    from ..shaders.exr_io import write_exr
+    from ..shaders.texel_maps import (CAPTURE_PICTURES, FLAG_BURIED, FLAG_CENTRE_INSIDE, FLAG_COVERED, FLAG_GUTTER,
+                                      FLAG_PUSHED_OUT, TEXEL_CHANNELS, TEXELS_FILE, TEXELS_JSON, save_capture_pictures)
+    from ..shaders.texel_raster import centre_overlap_count, dilate, rasterize, shelf_pack
+    from .scene_analysis import active_scene, principled_surface
+except ImportError:  # bpy as a module with the repository on sys.path
+    from blender_addon.scene_analysis import active_scene, principled_surface
+    from shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
+    from shaders.bake_report import update_report
+    from shaders.exr_io import write_exr
+    from shaders.texel_maps import (CAPTURE_PICTURES, FLAG_BURIED, FLAG_CENTRE_INSIDE, FLAG_COVERED, FLAG_GUTTER,
+                                    FLAG_PUSHED_OUT, TEXEL_CHANNELS, TEXELS_FILE, TEXELS_JSON, save_capture_pictures)
+    from shaders.texel_raster import centre_overlap_count, dilate, rasterize, shelf_pack
+
+LIGHTMAP_LAYER = "SGLightmap"
+OWNER_KEY = "sglf_lightmap_layer"  # on a mesh: the name of the UV layer SG Lightfield made there
+RECT_KEY = "sglf_lightmap_rect"  # on an object: (u0, v0, su, sv) of its tile in the atlas
+TEXEL_SCALE_KEY = "sglf_texel_scale"  # on an object: multiplier of the scene's texel density
+MAX_UV_LAYERS = 8  # Blender's limit per mesh
+UV_PADDING = 2  # texels between charts (bilinear filtering needs >= 1 after instance scaling)
+MAX_ATLAS_SIDE = 16384
+MAX_OVERLAP_FRACTION = 0.002  # of a user-chosen layer's covered texel centres
+PUSH_OUT_DIRECTIONS = 8  # rays in the tangent plane per texel (Rakhteenko)
+BURIED_DIRECTIONS = 5  # the normal and four tilted by 45 degrees; all must hit a back face
+
+
+@dataclass
+class ObjectTile:
+    id: int
+    name: str
+    mesh: str
+    uv_layer: str
+    rect: tuple  # (u0, v0, su, sv) in atlas UV
+    pixel_rect: tuple  # (x, y, w, h) in atlas pixels, y from the top
+    texels: int = 0
+    pushed_out: int = 0
+    buried: int = 0
+
+
+@dataclass
+class CaptureResult:
+    atlas_width: int
+    atlas_height: int
+    texels: int
+    coverage_percent: float
+    pushed_out_texels: int
+    buried_texels: int
+    objects: list
+    materials: list
+    warnings: list = field(default_factory=list)
+    seconds: float = 0.0
+
+
+def _noop_progress(fraction, message):
+    pass
+
+
+def _loop_triangle_arrays(mesh):
+    mesh.calc_loop_triangles()
+    count = len(mesh.loop_triangles)
+    loops = np.empty(count * 3, np.int64)
+    verts = np.empty(count * 3, np.int64)
+    mat_index = np.empty(count, np.int64)
+    mesh.loop_triangles.foreach_get("loops", loops)
+    mesh.loop_triangles.foreach_get("vertices", verts)
+    mesh.loop_triangles.foreach_get("material_index", mat_index)
+    coords = np.empty(len(mesh.vertices) * 3, np.float64)
+    mesh.vertices.foreach_get("co", coords)
+    return loops.reshape(-1, 3), verts.reshape(-1, 3), mat_index, coords.reshape(-1, 3)
+
+
+def _transform(matrix, points):
+    m = np.array(matrix, dtype=np.float64)
+    return points @ m[:3, :3].T + m[:3, 3]
+
+
+def _triangle_areas(points, verts):
+    a, b, c = (points[verts[:, k]] for k in range(3))
+    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+
+
+def _texel_scale(obj) -> float:
+    value = obj.get(TEXEL_SCALE_KEY, 1.0)
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise BakeInputError(f"'{obj.name}': custom property {TEXEL_SCALE_KEY} must be a number, got {value!r}")
+    if not (1e-3 <= value <= 1e3):
+        raise BakeInputError(f"'{obj.name}': {TEXEL_SCALE_KEY} {value} is outside 0.001..1000")
+    return value
+
+
+def _xatlas_layout(mesh, texels_per_unit: float):
+    """Chart and pack one mesh (object space) with xatlas; returns loop UVs (L, 2) in [0, 1], size, conflicts."""
+    import xatlas
+
+    loops, verts, _, coords = _loop_triangle_arrays(mesh)
+    atlas = xatlas.Atlas()
+    atlas.add_mesh(coords.astype(np.float32), verts.astype(np.uint32))
+    pack = xatlas.PackOptions()
+    pack.texels_per_unit = float(texels_per_unit)
+    pack.padding = UV_PADDING
+    pack.bilinear = True
+    atlas.generate(pack_options=pack)
+    _, indices, uvs = atlas[0]
+    loop_uv = np.zeros((len(mesh.loops), 2), np.float64)
+    loop_uv[loops.ravel()] = uvs[indices.ravel()]
+    # An n-gon whose triangles xatlas put into different charts cannot have one UV per loop.
+    conflicts = int(np.count_nonzero(np.abs(loop_uv[loops] - uvs[indices]).max(axis=(1, 2)) > 1e-6))
+    return loop_uv, (int(atlas.width), int(atlas.height)), conflicts
+
+
+def _layer_uvs(mesh, name):
+    layer = mesh.uv_layers.get(name)
+    uv = np.empty(len(mesh.loops) * 2, np.float64)
+    layer.uv.foreach_get("vector", uv)
+    return uv.reshape(-1, 2)
+
+
+def ensure_lightmap_layer(mesh, loop_uv) -> None:
+    """Write `loop_uv` into the mesh's SGLightmap layer, creating it; the user's layers and active flags stay."""
+    layer = mesh.uv_layers.get(LIGHTMAP_LAYER)
+    if layer is not None and mesh.get(OWNER_KEY) != LIGHTMAP_LAYER:
+        raise BakeInputError(f"mesh '{mesh.name}' already has a UV layer named {LIGHTMAP_LAYER} that SG Lightfield "
+                             "did not make; rename it, or choose it as the lightmap layer")
+    if layer is None:
+        if len(mesh.uv_layers) >= MAX_UV_LAYERS:
+            raise BakeInputError(f"mesh '{mesh.name}' has {MAX_UV_LAYERS} UV layers, Blender's maximum; remove one "
+                                 "or choose an existing valid layer as the lightmap layer")
+        active_index = mesh.uv_layers.active_index
+        render_layer = next((uv.name for uv in mesh.uv_layers if uv.active_render), None)
+        layer = mesh.uv_layers.new(name=LIGHTMAP_LAYER, do_init=False)
+        if render_layer is not None:
+            mesh.uv_layers.active_index = active_index
+            mesh.uv_layers[render_layer].active_render = True
+        mesh[OWNER_KEY] = LIGHTMAP_LAYER
+    layer.uv.foreach_set("vector", np.asarray(loop_uv, np.float32).ravel())
+    mesh.update()
+
+
+def remove_lightmap_uvs(scene) -> int:
+    """Undo capture's changes: drop the SGLightmap layers and tile rectangles it added. Returns the count."""
+    removed = 0
+    for obj in scene.objects:
+        if RECT_KEY in obj:
+            del obj[RECT_KEY]
+        mesh = obj.data if obj.type == "MESH" else None
+        if mesh is not None and mesh.get(OWNER_KEY) == LIGHTMAP_LAYER:
+            layer = mesh.uv_layers.get(LIGHTMAP_LAYER)
+            if layer is not None:
+                mesh.uv_layers.remove(layer)
+                removed += 1
+            del mesh[OWNER_KEY]
+    return removed
+
+
+def _validate_user_layer(obj, layer_name, world_area, density):
+    """A user-chosen lightmap layer must exist, stay inside [0, 1] and not overlap; returns its tile side."""
+    mesh = obj.data
+    if mesh.uv_layers.get(layer_name) is None:
+        raise BakeInputError(f"'{obj.name}': has no UV layer '{layer_name}' to use as the lightmap layer "
+                             f"(it has: {', '.join(mesh.uv_layers.keys()) or 'none'})")
+    loops, verts, _, coords = _loop_triangle_arrays(mesh)
+    uv = _layer_uvs(mesh, layer_name)[loops]
+    if not np.all(np.isfinite(uv)) or uv.min() < -1e-6 or uv.max() > 1 + 1e-6:
+        raise BakeInputError(f"'{obj.name}': UV layer '{layer_name}' leaves the [0, 1] square "
+                             f"(range {uv.min():.3f}..{uv.max():.3f}); a lightmap layout must stay inside it")
+    e1, e2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    uv_area = float(np.abs(0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])).sum())
+    if uv_area <= 1e-12:
+        raise BakeInputError(f"'{obj.name}': UV layer '{layer_name}' has no area")
+    side = int(np.clip(math.ceil(math.sqrt(world_area * density**2 / uv_area)), 4, MAX_ATLAS_SIDE))
+    check = max(side, 64)
+    px = np.stack([uv[..., 0] * check, (1 - uv[..., 1]) * check], axis=-1)
+    count = centre_overlap_count(px, check, check)
+    covered = np.count_nonzero(count)
+    overlap = np.count_nonzero(count > 1) / max(covered, 1)
+    if overlap > MAX_OVERLAP_FRACTION:
+        raise BakeInputError(f"'{obj.name}': UV layer '{layer_name}' overlaps itself ({100 * overlap:.1f}% of its "
+                             "texels are claimed twice); a lightmap layer needs a unique layout; leave the "
+                             "lightmap layer empty to let xatlas make one")
+    return side
+
+
+def _material_table(objects, plan):
+    names, table = [], []
+    plans = {mp.name: mp for op in plan.objects for mp in op.materials}
+    for obj in objects:
+        for slot in obj.material_slots or [None]:
+            material = slot.material if slot is not None else None
+            name = material.name if material is not None else "(no material)"
+            if name in names:
+                continue
+            names.append(name)
+            surface = principled_surface(material)
+            mp = plans.get(name)
+            if mp is not None:
+                surface["roughness"], surface["metallic"] = mp.roughness, mp.metallic
+            table.append({"id": len(names), "name": name, **surface})
+    return table
+
+
+def _object_material_ids(obj, materials):
+    by_name = {m["name"]: m["id"] for m in materials}
+    slots = [s.material.name if s.material is not None else "(no material)" for s in obj.material_slots]
+    return np.array([by_name[n] for n in slots] or [by_name["(no material)"]], np.int64)
+
+
+def _plan_layout(objects, settings, lightmap_uv_layer, warnings):
+    """Lightmap UVs per mesh and one atlas tile per object; returns tiles (mesh layer written)."""
+    groups: dict = {}
+    for obj in objects:
+        groups.setdefault(obj.data.name, []).append(obj)
+    sizes, pending = [], []
+    for mesh_name, users in groups.items():
+        mesh = users[0].data
+        loops, verts, _, coords = _loop_triangle_arrays(mesh)
+        local_area = float(_triangle_areas(coords, verts).sum())
+        if local_area <= 0:
+            raise BakeInputError(f"'{users[0].name}': mesh '{mesh_name}' has no faces with area")
+        densities = []  # texels per object-space unit, per instance
+        for obj in users:
+            world_area = float(_triangle_areas(_transform(obj.matrix_world, coords), verts).sum())
+            densities.append(settings.texel_density * _texel_scale(obj) * math.sqrt(world_area / local_area))
+        if lightmap_uv_layer:
+            sides = [_validate_user_layer(obj, lightmap_uv_layer, local_area * (d / settings.texel_density) ** 2,
+                                          settings.texel_density) for obj, d in zip(users, densities)]
+            for obj, side in zip(users, sides):
+                pending.append((obj, lightmap_uv_layer))
+                sizes.append((side, side))
+            continue
+        reference = max(densities)
+        if local_area * reference**2 > MAX_ATLAS_SIDE**2:
+            raise BakeInputError(f"'{users[0].name}' would need {local_area * reference**2:.3g} texels at "
+                                 f"{settings.texel_density:g} texels/m; lower the texel density or its "
+                                 f"{TEXEL_SCALE_KEY}")
+        loop_uv, (width, height), conflicts = _xatlas_layout(mesh, reference)
+        if conflicts:
+            warnings.append(f"mesh '{mesh_name}': {conflicts} n-gon triangle(s) were split across charts; "
+                            "triangulate those faces for a clean lightmap")
+        ensure_lightmap_layer(mesh, loop_uv)
+        for obj, density in zip(users, densities):
+            scale = density / reference
+            pending.append((obj, LIGHTMAP_LAYER))
+            sizes.append((max(1, math.ceil(width * scale)), max(1, math.ceil(height * scale))))
+    try:
+        positions, atlas_w, atlas_h = shelf_pack(sizes, border=1, max_side=MAX_ATLAS_SIDE)
+    except ValueError as exc:
+        raise BakeInputError(f"the lightmap atlas is too large ({exc}); lower the texel density") from exc
+    tiles = []
+    for i, ((obj, layer), (x, y), (w, h)) in enumerate(zip(pending, positions, sizes)):
+        rect = (x / atlas_w, (atlas_h - y - h) / atlas_h, w / atlas_w, h / atlas_h)
+        tiles.append(ObjectTile(i + 1, obj.name, obj.data.name, layer, rect, (x, y, w, h)))
+    return tiles, atlas_w, atlas_h
+
+
+def _scene_bvh(scene, depsgraph):
+    """World-space BVH of every visible mesh, winding made outward for negative scale."""
+    vertices, polygons, offset = [], [], 0
+    for obj in scene.objects:
+        if obj.type != "MESH" or obj.hide_render:
+            continue
+        evaluated = obj.evaluated_get(depsgraph)
+        mesh = evaluated.to_mesh()
+        try:
+            _, verts, _, coords = _loop_triangle_arrays(mesh)
+            world = _transform(evaluated.matrix_world, coords)
+            if np.linalg.det(np.array(evaluated.matrix_world)[:3, :3]) < 0:
+                verts = verts[:, ::-1]
+            vertices.append(world)
+            polygons.append(verts + offset)
+            offset += len(world)
+        finally:
+            evaluated.to_mesh_clear()
+    if not vertices:
+        return None
+    return BVHTree.FromPolygons(np.concatenate(vertices).tolist(), np.concatenate(polygons).tolist(),
+                                all_triangles=True)
+
+
+def _tangent_frame(n):
+    helper = np.where(np.abs(n[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+    t = np.cross(helper, n)
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    return t, np.cross(n, t)
+
+
+def push_out(bvh, position, normal, texel_size, offset):
+    """Rakhteenko's fix for texels whose sample lies inside other geometry, and detection of buried ones.
+
+    Rays in the tangent plane as long as the texel footprint's half diagonal: the nearest back-face hit
+    means the sample is inside something; it moves just outside that face. Afterwards a sample whose
+    normal ray and four rays tilted 45 degrees all hit back faces is enclosed (buried): nothing can see it.
+    Returns new positions and boolean masks (pushed, buried)."""
+    position = position.copy()
+    pushed = np.zeros(len(position), bool)
+    buried = np.zeros(len(position), bool)
+    if bvh is None or len(position) == 0:
+        return position, pushed, buried
+    t, b = _tangent_frame(normal)
+    angles = 2 * np.pi * np.arange(PUSH_OUT_DIRECTIONS) / PUSH_OUT_DIRECTIONS
+    reach = texel_size * math.sqrt(0.5)
+    for i in range(len(position)):
+        lifted = position[i] + normal[i] * offset[i]
+        best = None
+        for a in angles:
+            direction = math.cos(a) * t[i] + math.sin(a) * b[i]
+            # Start one offset behind the sample so a surface passing exactly through it is seen from
+            # its far side too: a sample lying on a wall's base is then moved to the wall's front.
+            origin = Vector(lifted - direction * offset[i])
+            direction = Vector(direction)
+            hit, hit_normal, _, distance = bvh.ray_cast(origin, direction, float(reach[i] + offset[i]))
+            if hit is not None and hit_normal.dot(direction) > 0 and (best is None or distance < best[0]):
+                best = (distance, hit, hit_normal)
+        if best is not None:
+            position[i] = np.array(best[1] + best[2] * float(offset[i])) - normal[i] * offset[i]
+            pushed[i] = True
+        origin = Vector(position[i] + normal[i] * offset[i])
+        enclosed = True
+        for k in range(BURIED_DIRECTIONS):
+            if k == 0:
+                direction = normal[i]
+            else:
+                a = 2 * np.pi * (k - 1) / (BURIED_DIRECTIONS - 1)
+                direction = (normal[i] + math.cos(a) * t[i] + math.sin(a) * b[i]) / math.sqrt(2)
+            direction = Vector(direction)
+            hit, hit_normal, _, _ = bvh.ray_cast(origin, direction)
+            if hit is None or hit_normal.dot(direction) <= 0:
+                enclosed = False
+                break
+        buried[i] = enclosed
+    return position, pushed, buried
+
+
+def ray_offset(position, texel_size):
+    """Scene-scale-aware origin offset: a thousandth of the texel, never below float32 resolution."""
+    magnitude = np.abs(position).max(axis=-1)
+    return np.maximum(1e-3 * texel_size, 64 * np.finfo(np.float32).eps * np.maximum(magnitude, 1.0))
+
+
+def _rasterize_object(obj, tile, depsgraph, material_ids, atlas_w, atlas_h, maps):
+    evaluated = obj.evaluated_get(depsgraph)
+    mesh = evaluated.to_mesh()
+    try:
+        if mesh.uv_layers.get(tile.uv_layer) is None:
+            raise BakeInputError(f"'{obj.name}': a modifier removed the lightmap UV layer '{tile.uv_layer}'")
+        loops, verts, mat_index, coords = _loop_triangle_arrays(mesh)
+        uv = _layer_uvs(mesh, tile.uv_layer)[loops]
+        normals = np.empty(len(mesh.loops) * 3, np.float64)
+        mesh.corner_normals.foreach_get("vector", normals)
+        corner_normals = normals.reshape(-1, 3)[loops]
+    finally:
+        evaluated.to_mesh_clear()
+    matrix = np.array(evaluated.matrix_world, dtype=np.float64)
+    world = _transform(matrix, coords)[verts]  # (T, 3, 3)
+    flip = -1.0 if np.linalg.det(matrix[:3, :3]) < 0 else 1.0
+    face = flip * np.cross(world[:, 1] - world[:, 0], world[:, 2] - world[:, 0])
+    world_area = 0.5 * np.linalg.norm(face, axis=1)
+    x, y, w, h = tile.pixel_rect
+    px = np.stack([x + uv[..., 0] * w, y + (1 - uv[..., 1]) * h], axis=-1)
+    e1, e2 = px[:, 1] - px[:, 0], px[:, 2] - px[:, 0]
+    px_area = np.abs(0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]))
+    usable = (world_area > 1e-20) & (px_area > 1e-12)
+    degenerate = np.where(~usable[:, None, None], np.nan, 0.0)
+    raster = rasterize(px + degenerate, atlas_w, atlas_h)  # NaN corners: skipped by the rasteriser
+    rows, cols = np.nonzero(raster.covered)
+    inside_tile = (cols >= x) & (cols < x + w) & (rows >= y) & (rows < y + h)
+    rows, cols = rows[inside_tile], cols[inside_tile]
+    if len(rows) == 0:
+        return 0
+    tri = raster.triangle[rows, cols]
+    bary = raster.barycentric[rows, cols]
+    position = np.einsum("nk,nkc->nc", bary, world[tri])
+    geometric = face[tri] / np.maximum(np.linalg.norm(face[tri], axis=1, keepdims=True), 1e-300)
+    normal_matrix = np.linalg.inv(matrix[:3, :3]).T
+    shading = np.einsum("nk,nkc->nc", bary, corner_normals[tri]) @ normal_matrix.T
+    length = np.linalg.norm(shading, axis=1, keepdims=True)
+    shading = np.where(length > 1e-12, shading / np.maximum(length, 1e-300), geometric)
+    texel_size = np.sqrt(world_area[tri] / px_area[tri])
+    flags = FLAG_COVERED | np.where(raster.centre_inside[rows, cols], FLAG_CENTRE_INSIDE, 0)
+    maps["P"][rows, cols] = position
+    maps["Ng"][rows, cols] = geometric
+    maps["N"][rows, cols] = shading
+    maps["object_id"][rows, cols] = tile.id
+    maps["material_id"][rows, cols] = material_ids[np.clip(mat_index[tri], 0, len(material_ids) - 1)]
+    maps["texel_size"][rows, cols] = texel_size
+    maps["flags"][rows, cols] = flags
+    return len(rows)
+
+
+def capture(scene, plan, out_dir, *, lightmap_uv_layer: str = "", progress=_noop_progress,
+            should_cancel=lambda: False) -> CaptureResult:
+    """Run the capture stage for `plan` on `scene`, writing texel maps into `out_dir`."""
+    start = time.perf_counter()
+    out_dir = Path(out_dir)
+    missing = [o.name for o in plan.baked_objects if scene.objects.get(o.name) is None]
+    if missing:
+        raise BakeInputError(f"objects {missing} of the plan are not in scene '{scene.name}'; make a new plan")
+    objects = [scene.objects[o.name] for o in plan.baked_objects]
+    warnings: list[str] = []
+    progress(0.0, "lightmap UVs")
+    with active_scene(scene):
+        tiles, atlas_w, atlas_h = _plan_layout(objects, plan.settings, lightmap_uv_layer, warnings)
+        for obj, tile in zip(objects, tiles):
+            obj[RECT_KEY] = list(tile.rect)
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        depsgraph.update()
+        materials = _material_table(objects, plan)
+        maps = {
+            "P": np.zeros((atlas_h, atlas_w, 3)), "Ng": np.zeros((atlas_h, atlas_w, 3)),
+            "N": np.zeros((atlas_h, atlas_w, 3)), "object_id": np.zeros((atlas_h, atlas_w), np.int64),
+            "material_id": np.zeros((atlas_h, atlas_w), np.int64), "texel_size": np.zeros((atlas_h, atlas_w)),
+            "flags": np.zeros((atlas_h, atlas_w), np.int64),
+        }
+        for k, (obj, tile) in enumerate(zip(objects, tiles)):
+            if should_cancel():
+                raise BakeCancelled("capture cancelled")
+            progress(0.1 + 0.4 * k / len(objects), f"texels of '{obj.name}'")
+            tile.texels = _rasterize_object(obj, tile, depsgraph, _object_material_ids(obj, materials),
+                                            atlas_w, atlas_h, maps)
+            if tile.texels == 0:
+                warnings.append(f"'{obj.name}': no texel at {plan.settings.texel_density:g} texels/m")
+        covered = (maps["flags"] & FLAG_COVERED) > 0
+        if not np.any(covered):
+            raise BakeInputError(f"no texel was produced at {plan.settings.texel_density:g} texels/m; "
+                                 "raise the texel density")
+        progress(0.5, "push-out of texels inside geometry")
+        bvh = _scene_bvh(scene, depsgraph)
+    rows, cols = np.nonzero(covered)
+    offset = ray_offset(maps["P"][rows, cols], maps["texel_size"][rows, cols])
+    if should_cancel():
+        raise BakeCancelled("capture cancelled")
+    position, pushed, buried = push_out(bvh, maps["P"][rows, cols], maps["Ng"][rows, cols],
+                                        maps["texel_size"][rows, cols], offset)
+    maps["P"][rows, cols] = position
+    maps["flags"][rows, cols] |= np.where(pushed, FLAG_PUSHED_OUT, 0) | np.where(buried, FLAG_BURIED, 0)
+    valid = np.zeros((atlas_h, atlas_w), bool)
+    valid[rows[~buried], cols[~buried]] = True
+    ray_offsets = np.zeros((atlas_h, atlas_w))
+    ray_offsets[rows, cols] = offset
+    for tile in tiles:
+        in_tile = maps["object_id"][rows, cols] == tile.id
+        tile.pushed_out, tile.buried = int(np.count_nonzero(pushed & in_tile)), int(np.count_nonzero(buried & in_tile))
+    progress(0.8, "gutters and files")
+    filled, reached = dilate({**maps, "ray_offset": ray_offsets}, covered, UV_PADDING + 1)
+    gutter = reached & ~covered
+    filled["flags"][gutter] = FLAG_GUTTER
+    atlas = _texel_atlas(filled, valid, materials)
+    result = CaptureResult(atlas_w, atlas_h, int(np.count_nonzero(valid)),
+                           round(100.0 * np.count_nonzero(valid) / (atlas_w * atlas_h), 3),
+                           int(np.count_nonzero(pushed)), int(np.count_nonzero(buried)),
+                           [asdict(t) for t in tiles], materials, warnings)
+    _write_outputs(out_dir, plan, atlas, result)
+    result.seconds = time.perf_counter() - start
+    update_report(out_dir, plan.content_hash(), timings_s={"capture": result.seconds}, texels=result.texels,
+                  coverage_percent=result.coverage_percent, pushed_out_texels=result.pushed_out_texels,
+                  buried_texels=result.buried_texels, atlas=[atlas_w, atlas_h], sg_count=plan.max_sg_count,
+                  capture_pictures=list(CAPTURE_PICTURES))
+    progress(1.0, f"{result.texels} texels")
+    return result
+
+
+def _texel_atlas(maps, valid, materials):
+    h, w = valid.shape
+    by_id = np.zeros((len(materials) + 1, 8))
+    for m in materials:
+        by_id[m["id"]] = [m["roughness"], m["metallic"], *m["base_color"], *m["f0"]]
+    surface = by_id[maps["material_id"]]
+    columns = [maps["P"], maps["Ng"], maps["N"], surface, valid[..., None].astype(np.float64),
+               maps["flags"][..., None], maps["object_id"][..., None], maps["material_id"][..., None],
+               maps["texel_size"][..., None], maps["ray_offset"][..., None]]
+    atlas = np.concatenate(columns, axis=-1).astype(np.float32)
+    assert atlas.shape == (h, w, len(TEXEL_CHANNELS))
+    return atlas
+
+
+def _write_outputs(out_dir, plan, atlas, result):
+    plan_hash = plan.content_hash()
+    write_exr(out_dir / TEXELS_FILE, atlas, precision="float", channels=TEXEL_CHANNELS,
+              metadata={"plan_hash": plan_hash, "stage": "capture"})
+    info = {k: v for k, v in asdict(result).items() if k != "seconds"}
+    write_json_atomic(out_dir / TEXELS_JSON, {"plan_hash": plan_hash, "channels": TEXEL_CHANNELS,
+                                              "rows": "row 0 = top of the atlas (v near 1)",
+                                              "lightmap_layer": LIGHTMAP_LAYER, "rect_property": RECT_KEY, **info})
+    save_capture_pictures(out_dir, atlas)

@@ -1,0 +1,76 @@
+"""The capture stage's texel maps as files: channel layout, flags, reading with a plan check, pictures.
+
+Pure numpy (no bpy): the render stage, training and tests read texel maps through this module.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+try:
+    from .bake_plan import BakeInputError
+    from .bake_report import save_png
+    from .exr_io import read_exr
+except ImportError:
+    from shaders.bake_plan import BakeInputError
+    from shaders.bake_report import save_png
+    from shaders.exr_io import read_exr
+
+TEXELS_FILE, TEXELS_JSON = "texels.exr", "texels.json"
+TEXEL_CHANNELS = [
+    "P.X", "P.Y", "P.Z",  # world position of the sample (after push-out), metres
+    "Ng.X", "Ng.Y", "Ng.Z",  # geometric normal, outward
+    "N.X", "N.Y", "N.Z",  # shading normal
+    "roughness", "metallic", "base.R", "base.G", "base.B", "F0.R", "F0.G", "F0.B",
+    "valid",  # 1: render this texel's light field; 0: gutter, empty or buried
+    "flags",  # FLAG_* bits
+    "object_id", "material_id",  # 1-based indices into texels.json tables; 0 = none
+    "texel_size",  # world-space edge length of the texel footprint, metres
+    "ray_offset",  # origin offset along Ng for rays leaving this texel, metres
+]
+CHANNEL = {name: i for i, name in enumerate(TEXEL_CHANNELS)}
+FLAG_COVERED, FLAG_CENTRE_INSIDE, FLAG_PUSHED_OUT, FLAG_BURIED, FLAG_GUTTER = 1, 2, 4, 8, 16
+CAPTURE_PICTURES = ("capture_position.png", "capture_normal.png", "capture_validity.png")
+
+
+def channels(atlas: np.ndarray, first: str, count: int = 1) -> np.ndarray:
+    """Slice `count` consecutive channels starting at `first`, e.g. channels(atlas, "P.X", 3)."""
+    start = CHANNEL[first]
+    return atlas[..., start] if count == 1 else atlas[..., start:start + count]
+
+
+def read_texel_maps(out_dir, plan_hash: str | None = None):
+    """(atlas (H, W, C) float32, texels.json dict); refuses maps made for another plan."""
+    out_dir = Path(out_dir)
+    info_path = out_dir / TEXELS_JSON
+    if not info_path.is_file():
+        raise BakeInputError(f"{out_dir}: no texel maps ({TEXELS_JSON}); run the capture stage first")
+    info = json.loads(info_path.read_text())
+    atlas, _, metadata = read_exr(out_dir / TEXELS_FILE, channels=TEXEL_CHANNELS)
+    if metadata.get("plan_hash") != info.get("plan_hash"):
+        raise BakeInputError(f"{out_dir}: {TEXELS_FILE} and {TEXELS_JSON} come from different bakes")
+    if plan_hash is not None and info.get("plan_hash") != plan_hash:
+        raise BakeInputError(f"{out_dir}: texel maps were captured for another plan; run the capture stage again")
+    return atlas, info
+
+
+def save_capture_pictures(out_dir, atlas: np.ndarray) -> list[Path]:
+    """Position, normal and validity pictures of the atlas (nearest-neighbour enlarged PNGs)."""
+    out_dir = Path(out_dir)
+    valid = channels(atlas, "valid") > 0
+    flags = channels(atlas, "flags").astype(np.int64)
+    known = (flags & (FLAG_COVERED | FLAG_GUTTER)) > 0
+    position = channels(atlas, "P.X", 3).astype(np.float64)
+    lo, hi = position[known].min(axis=0), position[known].max(axis=0)
+    position_rgb = np.where(known[..., None], (position - lo) / np.maximum(hi - lo, 1e-12), 0.0)
+    normal_rgb = np.where(known[..., None], 0.5 + 0.5 * channels(atlas, "N.X", 3), 0.0)
+    validity = np.zeros(valid.shape + (3,))
+    validity[(flags & FLAG_GUTTER) > 0] = (0.35, 0.35, 0.35)  # dilated gutter
+    validity[valid] = (1.0, 1.0, 1.0)  # centre inside a triangle
+    validity[valid & ((flags & FLAG_CENTRE_INSIDE) == 0)] = (0.55, 0.75, 1.0)  # partly covered (conservative)
+    validity[(flags & FLAG_PUSHED_OUT) > 0] = (1.0, 0.6, 0.0)
+    validity[(flags & FLAG_BURIED) > 0] = (0.9, 0.0, 0.0)
+    return [save_png(out_dir / name, image)
+            for name, image in zip(CAPTURE_PICTURES, (position_rgb, normal_rgb, validity))]

@@ -1,0 +1,71 @@
+"""Small real scenes for tests (bpy as a module): meshes from bmesh, Principled materials, hashes."""
+import hashlib
+import re
+
+import bpy  # noqa: I001  (bmesh exists only once bpy is imported)
+import bmesh
+import numpy as np
+
+from blender_addon.scene_analysis import enable_nodes
+
+
+def base_name(name: str) -> str:
+    """'Floor.002' -> 'Floor': demo scenes built twice in one session get Blender's numeric suffixes."""
+    return re.sub(r"\.\d{3}$", "", name)
+
+
+def material(name, roughness, metallic=0.0):
+    mat = bpy.data.materials.new(name)
+    enable_nodes(mat)
+    bsdf = next(n for n in mat.node_tree.nodes if n.type == "BSDF_PRINCIPLED")
+    bsdf.inputs["Roughness"].default_value = roughness
+    bsdf.inputs["Metallic"].default_value = metallic
+    return mat
+
+
+def mesh_object(name, build, mat=None, uv_map=None, mesh=None):
+    """A new object; `build(bm)` fills a fresh mesh unless an existing `mesh` is shared."""
+    if mesh is None:
+        mesh = bpy.data.meshes.new(name)
+        bm = bmesh.new()
+        if uv_map:
+            bm.loops.layers.uv.new(uv_map)
+        build(bm)
+        bm.to_mesh(mesh)
+        bm.free()
+        if mat is not None:
+            mesh.materials.append(mat)
+    return bpy.data.objects.new(name, mesh)
+
+
+def scene_with(*objects, name="test scene"):
+    scene = bpy.data.scenes.new(name)
+    for obj in objects:
+        scene.collection.objects.link(obj)
+    return scene
+
+
+def cube(size=1.0):
+    return lambda bm: bmesh.ops.create_cube(bm, size=size, calc_uvs=True)
+
+
+def uv_sphere(radius=1.0, segments=24, rings=12):
+    return lambda bm: bmesh.ops.create_uvsphere(bm, u_segments=segments, v_segments=rings, radius=radius,
+                                                calc_uvs=True)
+
+
+def mesh_fingerprint(mesh) -> str:
+    """Hash of what a user owns in a mesh: vertices, faces, every UV layer and the active flags."""
+    h = hashlib.sha256()
+    co = np.empty(len(mesh.vertices) * 3, np.float32)
+    mesh.vertices.foreach_get("co", co)
+    h.update(co.tobytes())
+    loops = np.empty(len(mesh.loops), np.int64)
+    mesh.loops.foreach_get("vertex_index", loops)
+    h.update(loops.tobytes())
+    for layer in mesh.uv_layers:
+        uv = np.empty(len(mesh.loops) * 2, np.float32)
+        layer.uv.foreach_get("vector", uv)
+        h.update(layer.name.encode() + bytes([layer.active, layer.active_render]) + uv.tobytes())
+    h.update(str(sorted(mesh.keys())).encode())
+    return h.hexdigest()
