@@ -395,6 +395,13 @@ def _rasterize_object(obj, tile, depsgraph, material_ids, atlas_w, atlas_h, maps
     px_area = np.abs(0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]))
     usable = (world_area > 1e-20) & (px_area > 1e-12)
     degenerate = np.where(~usable[:, None, None], np.nan, 0.0)
+    claimed = centre_overlap_count(px[usable], atlas_w, atlas_h)
+    overlap = np.count_nonzero(claimed > 1) / max(np.count_nonzero(claimed), 1)
+    if overlap > MAX_OVERLAP_FRACTION:
+        modifiers = ", ".join(m.name for m in obj.modifiers if m.show_render) or "none"
+        raise BakeInputError(f"'{obj.name}': its lightmap UVs overlap after modifiers ({100 * overlap:.1f}% of its "
+                             f"texels are claimed twice; modifiers: {modifiers}); apply mirroring or array "
+                             "modifiers before baking")
     raster = rasterize(px + degenerate, atlas_w, atlas_h)  # NaN corners: skipped by the rasteriser
     rows, cols = np.nonzero(raster.covered)
     inside_tile = (cols >= x) & (cols < x + w) & (rows >= y) & (rows < y + h)

@@ -187,6 +187,23 @@ def test_ngons_zero_area_faces_loose_vertices_and_no_uvs(tmp_path):
     assert len(obj.data.uv_layers) == 0
 
 
+def test_modifiers_are_applied_and_overlapping_results_are_refused(tmp_path):
+    smooth = mesh_object("Subdivided", cube(2.0), material("glossy", 0.2))
+    subsurf = smooth.modifiers.new("Subdivision", "SUBSURF")
+    subsurf.levels = subsurf.render_levels = 3
+    _capture(scene_with(smooth), tmp_path / "subsurf")
+    atlas, _ = read_texel_maps(tmp_path / "subsurf")
+    p = channels(atlas, "P.X", 3)[channels(atlas, "valid") > 0]
+    # A subdivided cube is rounded: no texel reaches the base cube's corners (|p| = sqrt 3 there).
+    assert np.linalg.norm(p, axis=1).max() < 0.9 * np.sqrt(3) and np.abs(p).max() > 0.6
+    mirrored = mesh_object("Mirrored Half", cube(1.0), material("glossy", 0.2))
+    mirrored.location = (2, 0, 0)
+    mirror = mirrored.modifiers.new("Mirror", "MIRROR")
+    mirror.mirror_object = None
+    with pytest.raises(BakeInputError, match="'Mirrored Half': its lightmap UVs overlap after modifiers.*Mirror"):
+        _capture(scene_with(mirrored), tmp_path / "mirror")
+
+
 def test_texel_scale_multiplier_per_object(tmp_path):
     a = mesh_object("Coarse", cube(1.0), material("glossy", 0.2))
     b = mesh_object("Fine", cube(1.0), material("glossy", 0.2))

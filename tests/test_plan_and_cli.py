@@ -54,8 +54,9 @@ def test_empty_scene_is_one_clear_error():
 def test_cameras_and_empties_only():
     cam = bpy.data.objects.new("Cam", bpy.data.cameras.new("Cam"))
     empty = bpy.data.objects.new("Empty", None)
-    with pytest.raises(BakeInputError, match="only camera, empty"):
-        build_plan(_scene_with(cam, empty), DRAFT)
+    hair = bpy.data.objects.new("Hair", bpy.data.hair_curves.new("Hair"))
+    with pytest.raises(BakeInputError, match="only camera, curves, empty"):
+        build_plan(_scene_with(cam, empty, hair), DRAFT)
 
 
 def test_no_glossy_material_and_no_material():
