@@ -54,7 +54,10 @@ UV_PADDING = 2  # texels between charts (bilinear filtering needs >= 1 after ins
 MAX_ATLAS_SIDE = 16384
 MAX_OVERLAP_FRACTION = 0.002  # of a user-chosen layer's covered texel centres
 PUSH_OUT_DIRECTIONS = 8  # rays in the tangent plane per texel (Rakhteenko)
-BURIED_DIRECTIONS = 5  # the normal and four tilted by 45 degrees; all must hit a back face
+BURIED_DIRECTIONS = 5  # the normal and four tilted by 45 degrees; all must hit a back face ...
+BURIED_REACH_TEXELS = 8  # ... within this many texels (or 1% of the scene's size): a closed shell
+# around the whole scene (an emissive sky sphere, a room modelled as one outward-facing box) seen from
+# inside must not bury every texel
 
 
 @dataclass
@@ -288,7 +291,8 @@ def _plan_layout(objects, settings, lightmap_uv_layer, warnings):
 
 
 def _scene_bvh(scene, depsgraph):
-    """World-space BVH of every visible mesh, winding made outward for negative scale."""
+    """World-space BVH of every visible mesh (winding made outward for negative scale) and the length of
+    the scene's bounding-box diagonal."""
     vertices, polygons, offset = [], [], 0
     for obj in scene.objects:
         if obj.type != "MESH" or obj.hide_render:
@@ -306,9 +310,10 @@ def _scene_bvh(scene, depsgraph):
         finally:
             evaluated.to_mesh_clear()
     if not vertices:
-        return None
-    return BVHTree.FromPolygons(np.concatenate(vertices).tolist(), np.concatenate(polygons).tolist(),
-                                all_triangles=True)
+        return None, 0.0
+    points = np.concatenate(vertices)
+    size = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+    return BVHTree.FromPolygons(points.tolist(), np.concatenate(polygons).tolist(), all_triangles=True), size
 
 
 def _tangent_frame(n):
@@ -318,12 +323,13 @@ def _tangent_frame(n):
     return t, np.cross(n, t)
 
 
-def push_out(bvh, position, normal, texel_size, offset):
+def push_out(bvh, position, normal, texel_size, offset, scene_size=0.0):
     """Rakhteenko's fix for texels whose sample lies inside other geometry, and detection of buried ones.
 
     Rays in the tangent plane as long as the texel footprint's half diagonal: the nearest back-face hit
     means the sample is inside something; it moves just outside that face. Afterwards a sample whose
-    normal ray and four rays tilted 45 degrees all hit back faces is enclosed (buried): nothing can see it.
+    normal ray and four rays tilted 45 degrees all hit back faces nearby is enclosed (buried): nothing
+    can see it.
     Returns new positions and boolean masks (pushed, buried)."""
     position = position.copy()
     pushed = np.zeros(len(position), bool)
@@ -357,7 +363,8 @@ def push_out(bvh, position, normal, texel_size, offset):
                 a = 2 * np.pi * (k - 1) / (BURIED_DIRECTIONS - 1)
                 direction = (normal[i] + math.cos(a) * t[i] + math.sin(a) * b[i]) / math.sqrt(2)
             direction = Vector(direction)
-            hit, hit_normal, _, _ = bvh.ray_cast(origin, direction)
+            reach_buried = max(BURIED_REACH_TEXELS * float(texel_size[i]), 0.01 * scene_size)
+            hit, hit_normal, _, _ = bvh.ray_cast(origin, direction, reach_buried)
             if hit is None or hit_normal.dot(direction) <= 0:
                 enclosed = False
                 break
@@ -465,13 +472,13 @@ def capture(scene, plan, out_dir, *, lightmap_uv_layer: str = "", progress=_noop
             raise BakeInputError(f"no texel was produced at {plan.settings.texel_density:g} texels/m; "
                                  "raise the texel density")
         progress(0.5, "push-out of texels inside geometry")
-        bvh = _scene_bvh(scene, depsgraph)
+        bvh, scene_size = _scene_bvh(scene, depsgraph)
     rows, cols = np.nonzero(covered)
     offset = ray_offset(maps["P"][rows, cols], maps["texel_size"][rows, cols])
     if should_cancel():
         raise BakeCancelled("capture cancelled")
     position, pushed, buried = push_out(bvh, maps["P"][rows, cols], maps["Ng"][rows, cols],
-                                        maps["texel_size"][rows, cols], offset)
+                                        maps["texel_size"][rows, cols], offset, scene_size)
     maps["P"][rows, cols] = position
     maps["flags"][rows, cols] |= np.where(pushed, FLAG_PUSHED_OUT, 0) | np.where(buried, FLAG_BURIED, 0)
     valid = np.zeros((atlas_h, atlas_w), bool)

@@ -1,0 +1,439 @@
+"""Render stage: Cycles light-field and environment-visibility atlases with a custom OSL camera.
+
+All rendering happens in a temporary scene that links the user's render-visible objects; the user's
+scene, objects, lamps and world are never modified (lamps and the world are copied where the render
+needs other settings). Each tile is one render call of many texels (shaders/lightfield_camera.osl).
+
+Passes (directories in the bake directory, see shaders/lightfield_tiles.py):
+  lightfield       emission, lamps and all indirect light arriving at each texel; the world is hidden
+                   from the texel's own rays when the plan handles it with environment visibility
+                   (IWEV), but still lights the scene indirectly.
+  env_radiance     the unoccluded environment L_E over the whole sphere (one block, many samples)
+  env_visibility   W_E per texel (shaders/env_visibility.py) from an L_E*V render: world visible, every
+                   surface a holdout (black), lamps left out, primary rays only.
+  midpoints        optional held-out light fields at midpoints between neighbouring texels.
+
+Lamps enter the light field as light sources the texel's rays can hit: copies of the lamps are made
+visible to camera rays (Cycles hides lamps from camera rays by default). A ray only finds a lamp that
+covers a useful part of an octahedral pixel, so lamps smaller than LAMP_MIN_PIXEL_FRACTION of a pixel's
+angular radius, seen from the median baked texel, are enlarged for the light field (same power; the
+render says which and by how much). Sun lamps get at least the same angular size.
+"""
+from __future__ import annotations
+
+import math
+import os
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import bpy
+import numpy as np
+
+try:  # inside the installed extension the numpy side is a sibling package
+    from ..shaders.bake_plan import BakeCancelled, BakeInputError
+    from ..shaders.bake_report import update_report
+    from ..shaders.env_visibility import env_visibility
+    from ..shaders.exr_io import read_exr, write_exr
+    from ..shaders.lightfield_tiles import (DEFAULT_TILE_MEGAPIXELS, TileIndex, blocks_to_images, images_to_blocks,
+                                            parse_share, plan_tiles, tile_is_finished, write_index)
+    from ..shaders.texel_maps import channels, read_texel_maps
+    from .scene_analysis import active_scene
+except ImportError:  # bpy as a module with the repository on sys.path
+    from blender_addon.scene_analysis import active_scene
+    from shaders.bake_plan import BakeCancelled, BakeInputError
+    from shaders.bake_report import update_report
+    from shaders.env_visibility import env_visibility
+    from shaders.exr_io import read_exr, write_exr
+    from shaders.lightfield_tiles import (DEFAULT_TILE_MEGAPIXELS, TileIndex, blocks_to_images, images_to_blocks,
+                                          parse_share, plan_tiles, tile_is_finished, write_index)
+    from shaders.texel_maps import channels, read_texel_maps
+
+CAMERA_SHADER = Path(__file__).resolve().parent.parent / "shaders" / "lightfield_camera.osl"
+LAMP_MIN_PIXEL_FRACTION = 0.5  # of an octahedral pixel's angular radius (about 2/R radians)
+ENV_RADIANCE_SAMPLES = 256
+MIDPOINT_SEED = 20200
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+TEMP_PREFIX = "SGLF render"
+
+
+@dataclass
+class RenderResult:
+    seconds: float = 0.0
+    tiles_rendered: dict = field(default_factory=dict)  # kind -> tiles rendered by this run
+    tiles_skipped: dict = field(default_factory=dict)  # kind -> tiles already finished
+    texels: int = 0
+    rays_per_second: float = 0.0
+    env_post_seconds: float = 0.0
+    warnings: list = field(default_factory=list)
+
+
+def _noop_progress(fraction, message):
+    pass
+
+
+def _import_oslquery():
+    try:
+        import oslquery  # noqa: F401
+    except ImportError:  # bpy as a module: the module ships inside the wheel, off sys.path
+        scripts = bpy.utils.system_resource("SCRIPTS")
+        bundled = os.path.join(os.path.dirname(scripts), "python", "lib",
+                               f"python{sys.version_info.major}.{sys.version_info.minor}", "site-packages")
+        if os.path.isdir(bundled) and bundled not in sys.path:
+            sys.path.append(bundled)
+        import oslquery  # noqa: F401
+
+
+class _RenderScene:
+    """A temporary scene that sees the user's render-visible objects through an atlas camera."""
+
+    def __init__(self, scene, plan, work_dir: Path, texel_positions=None):
+        self.source, self.plan, self.work_dir = scene, plan, work_dir
+        self.texel_positions = np.zeros((1, 3)) if texel_positions is None else np.asarray(texel_positions)
+        self.created = []  # (collection, datablock) to remove afterwards
+        self.warnings = []
+
+    def __enter__(self):
+        source = self.source
+        self.scene = self._new(bpy.data.scenes, f"{TEMP_PREFIX} {source.name}")
+        self.lamps, self.others = [], []
+        for obj in source.objects:
+            if obj.hide_render or obj.type == "CAMERA":
+                continue
+            if obj.type == "LIGHT":
+                self.lamps.append(self._visible_lamp(obj))
+            else:
+                self.others.append(obj)
+        for obj in self.others + self.lamps:
+            self.scene.collection.objects.link(obj)
+        self.world = None
+        if source.world is not None:
+            self.world = source.world.copy()
+            self.created.append((bpy.data.worlds, self.world))
+        self.scene.world = self.world
+        self.warnings += self._sanitise_environment_images()
+        self._settings()
+        self.camera = self._camera()
+        self.holdout = self._new(bpy.data.materials, f"{TEMP_PREFIX} holdout")
+        nodes = self.holdout.node_tree.nodes
+        for node in list(nodes):
+            if node.type != "OUTPUT_MATERIAL":
+                nodes.remove(node)
+        hold = nodes.new("ShaderNodeHoldout")
+        self.holdout.node_tree.links.new(hold.outputs[0], nodes["Material Output"].inputs["Surface"])
+        return self
+
+    def __exit__(self, *exc):
+        for collection, block in reversed(self.created):
+            try:
+                collection.remove(block)
+            except (ReferenceError, RuntimeError):
+                pass
+        return False
+
+    def _sanitise_environment_images(self) -> list[str]:
+        """NaN, Inf or negative pixels in an environment image would poison every texel: render with a
+        cleaned copy (the user's image stays as it is) and say so."""
+        warnings = []
+        if self.world is None or self.world.node_tree is None:
+            return warnings
+        for node in self.world.node_tree.nodes:
+            image = getattr(node, "image", None) if node.type in ("TEX_ENVIRONMENT", "TEX_IMAGE") else None
+            if image is None or image.size[0] == 0:
+                continue
+            pixels = np.empty(image.size[0] * image.size[1] * image.channels, np.float32)
+            image.pixels.foreach_get(pixels)
+            bad = ~np.isfinite(pixels) | (pixels < 0)
+            if not np.any(bad):
+                continue
+            clean = image.copy()
+            self.created.append((bpy.data.images, clean))
+            clean.pixels.foreach_set(np.where(bad, 0.0, pixels).astype(np.float32))
+            clean.pack()  # the render reads the cleaned pixels, not the file on disk
+            node.image = clean
+            warnings.append(f"environment image '{image.name}': {int(bad.sum())} NaN/Inf/negative values "
+                            "replaced by 0 for the bake")
+        return warnings
+
+    def _new(self, collection, name, *args):
+        block = collection.new(name, *args)
+        self.created.append((collection, block))
+        return block
+
+    def _visible_lamp(self, obj):
+        data = obj.data.copy()
+        self.created.append((bpy.data.lights, data))
+        lamp = obj.copy()
+        lamp.data = data
+        self.created.append((bpy.data.objects, lamp))
+        lamp.visible_camera = True
+        angle = LAMP_MIN_PIXEL_FRACTION * 2.0 / self.plan.settings.lightfield_resolution  # radians
+        location = np.array(obj.matrix_world.translation)
+        distance = float(np.median(np.linalg.norm(self.texel_positions - location, axis=1)))
+        if data.type in ("POINT", "SPOT"):
+            wanted = distance * math.tan(angle)
+            if data.shadow_soft_size < wanted:
+                self.warnings.append(f"lamp '{obj.name}': radius {data.shadow_soft_size:.3g} m -> {wanted:.3g} m in "
+                                     "the light field so its rays can hit it")
+                data.shadow_soft_size = wanted
+        elif data.type == "AREA":
+            wanted = 2.0 * distance * math.tan(angle)
+            if max(data.size, getattr(data, "size_y", 0.0)) < wanted:
+                self.warnings.append(f"lamp '{obj.name}': size {data.size:.3g} m -> {wanted:.3g} m in the light field")
+                data.size = max(data.size, wanted)
+                if data.shape in ("RECTANGLE", "ELLIPSE"):
+                    data.size_y = max(data.size_y, wanted)
+        elif data.type == "SUN" and data.angle < 2 * angle:
+            self.warnings.append(f"sun '{obj.name}': angle {math.degrees(data.angle):.2g} deg -> "
+                                 f"{math.degrees(2 * angle):.2g} deg in the light field")
+            data.angle = 2 * angle
+        return lamp
+
+    def _settings(self):
+        scene, source = self.scene, self.source
+        scene.render.engine = "CYCLES"
+        cycles, user = scene.cycles, source.cycles
+        for name in ("max_bounces", "diffuse_bounces", "glossy_bounces", "transmission_bounces",
+                     "volume_bounces", "transparent_max_bounces", "caustics_reflective", "caustics_refractive",
+                     "blur_glossy", "sample_clamp_direct", "sample_clamp_indirect"):
+            setattr(cycles, name, getattr(user, name))
+        cycles.device = "GPU" if self.plan.settings.device == "cuda" else "CPU"
+        cycles.use_denoising = False
+        cycles.use_adaptive_sampling = False
+        cycles.pixel_filter_type = "BOX"
+        cycles.filter_width = 1.0
+        cycles.seed = 0
+        scene.render.film_transparent = False
+        scene.render.resolution_percentage = 100
+        scene.render.use_persistent_data = True  # the scene's BVH survives from one tile to the next
+        scene.render.image_settings.file_format = "OPEN_EXR"
+        scene.render.image_settings.color_depth = "32"
+        scene.render.image_settings.color_mode = "RGB"
+        scene.render.use_compositing = False
+        scene.render.use_sequencer = False
+
+    def _camera(self):
+        _import_oslquery()
+        import cycles.osl
+
+        text = self._new(bpy.data.texts, f"{TEMP_PREFIX} camera.osl")
+        text.write(CAMERA_SHADER.read_text())
+        data = self._new(bpy.data.cameras, f"{TEMP_PREFIX} camera")
+        data.type = "CUSTOM"
+        data.custom_mode = "INTERNAL"
+        data.custom_shader = text
+        data.clip_start, data.clip_end = 1e-6, 1e9
+        messages = []
+        ok = cycles.osl.update_custom_camera_shader(data, lambda kind, message: messages.append(message))
+        if not ok:
+            raise BakeInputError("the light-field camera shader did not compile: " + "; ".join(messages))
+        camera = self._new(bpy.data.objects, f"{TEMP_PREFIX} camera", data)
+        self.scene.collection.objects.link(camera)
+        self.scene.camera = camera
+        return camera
+
+    def configure(self, kind: str):
+        """Scene state for one pass: which objects, world visibility, material override, samples."""
+        scene, settings = self.scene, self.plan.settings
+        environment_pass = kind in ("env_radiance", "env_occluded")
+        linked = set(scene.collection.objects)
+        wanted = set() if kind == "env_radiance" else set(self.others)
+        if kind in ("lightfield", "midpoints"):
+            wanted |= set(self.lamps)
+        wanted.add(self.camera)
+        for obj in linked - wanted:
+            scene.collection.objects.unlink(obj)
+        for obj in wanted - linked:
+            scene.collection.objects.link(obj)
+        scene.view_layers[0].material_override = self.holdout if environment_pass else None
+        if self.world is not None:
+            self.world.cycles_visibility.camera = environment_pass or not self.plan.environment.iwev
+        if environment_pass:
+            scene.cycles.max_bounces = 0
+        else:
+            scene.cycles.max_bounces = self.source.cycles.max_bounces
+        scene.cycles.samples = ENV_RADIANCE_SAMPLES if kind == "env_radiance" else settings.samples
+
+    def render(self, positions, normals, offsets, flags, columns, rows, resolution, name) -> np.ndarray:
+        """Render `columns` x `rows` blocks; inputs are (count, 3) arrays; returns (H, W, 3) float32."""
+        count = len(positions)
+        textures = {}
+        for key, values in (("position", positions), ("normal", normals),
+                            ("offset", np.stack([offsets, flags, np.zeros(count)], axis=-1))):
+            grid = np.zeros((rows * columns, 3), np.float32)
+            grid[:count] = values
+            path = self.work_dir / f"{name}_{key}.exr"
+            write_exr(path, grid.reshape(rows, columns, 3), precision="float", channels=["R", "G", "B"])
+            textures[key] = str(path)
+        props = self.camera.data.cycles_custom
+        props["texel_position"], props["texel_normal"] = textures["position"], textures["normal"]
+        props["texel_offset"] = textures["offset"]
+        props["columns"], props["rows"], props["resolution"] = columns, rows, resolution
+        self.camera.data.update_tag()
+        self.scene.render.resolution_x, self.scene.render.resolution_y = columns * resolution, rows * resolution
+        output = self.work_dir / f"{name}_render.exr"
+        self.scene.render.filepath = str(output)
+        with active_scene(self.scene):
+            bpy.ops.render.render(write_still=True, scene=self.scene.name)
+        if not output.is_file():
+            raise BakeInputError(f"Cycles wrote no image for {name}")
+        pixels, _, _ = read_exr(output, channels=["R", "G", "B"])
+        for key in textures.values():
+            Path(key).unlink(missing_ok=True)
+        output.unlink(missing_ok=True)
+        return pixels
+
+
+def valid_texels(atlas: np.ndarray) -> np.ndarray:
+    """(T, 2) atlas [row, col] of the texels to render, row-major."""
+    rows, cols = np.nonzero(channels(atlas, "valid") > 0)
+    return np.stack([rows, cols], axis=-1)
+
+
+def _texel_inputs(atlas, texels):
+    r, c = texels[:, 0], texels[:, 1]
+    return (channels(atlas, "P.X", 3)[r, c].astype(np.float64), channels(atlas, "Ng.X", 3)[r, c].astype(np.float64),
+            channels(atlas, "ray_offset")[r, c].astype(np.float64))
+
+
+def midpoint_pairs(atlas: np.ndarray, count: int, seed: int = MIDPOINT_SEED) -> np.ndarray:
+    """(M, 4) [row, col, row2, col2]: random horizontally or vertically adjacent valid texels of one object."""
+    valid = channels(atlas, "valid") > 0
+    object_id = channels(atlas, "object_id")
+    pairs = []
+    for dr, dc in ((0, 1), (1, 0)):
+        a = valid[:valid.shape[0] - dr, :valid.shape[1] - dc]
+        b = valid[dr:, dc:]
+        same = object_id[:object_id.shape[0] - dr, :object_id.shape[1] - dc] == object_id[dr:, dc:]
+        r, c = np.nonzero(a & b & same)
+        pairs.append(np.stack([r, c, r + dr, c + dc], axis=-1))
+    pairs = np.concatenate(pairs)
+    rng = np.random.default_rng(seed)
+    pick = rng.choice(len(pairs), size=min(count, len(pairs)), replace=False) if len(pairs) else []
+    return pairs[np.sort(pick)] if len(pairs) else np.zeros((0, 4), np.int64)
+
+
+def _midpoint_inputs(atlas, pairs):
+    p1, n1, o1 = _texel_inputs(atlas, pairs[:, :2])
+    p2, n2, o2 = _texel_inputs(atlas, pairs[:, 2:])
+    normal = n1 + n2
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    return 0.5 * (p1 + p2), normal, np.maximum(o1, o2)
+
+
+def _mono(images):
+    return (images @ LUMINANCE)[..., None]
+
+
+def render_stage(scene, plan, out_dir, *, share: str | None = None, midpoints: int = 0,
+                 max_tile_megapixels: float = DEFAULT_TILE_MEGAPIXELS, progress=_noop_progress,
+                 should_cancel=lambda: False) -> RenderResult:
+    """Render every pass the plan needs into `out_dir`; finished tiles are kept and skipped."""
+    start = time.perf_counter()
+    out_dir = Path(out_dir)
+    plan_hash = plan.content_hash()
+    atlas, _ = read_texel_maps(out_dir, plan_hash)
+    settings = plan.settings
+    resolution = settings.lightfield_resolution
+    result = RenderResult()
+    texels = valid_texels(atlas)
+    result.texels = len(texels)
+    jobs = [("lightfield", texels, _texel_inputs(atlas, texels), 3)]
+    if midpoints > 0:
+        pairs = midpoint_pairs(atlas, midpoints)
+        jobs.append(("midpoints", pairs, _midpoint_inputs(atlas, pairs), 3))
+    iwev_channels = plan.environment.iwev_channels if plan.environment.iwev else 0
+    if iwev_channels:
+        jobs.append(("env_visibility", texels, _texel_inputs(atlas, texels), iwev_channels))
+    work = []  # (kind, kind_dir, index, tile, inputs)
+    for kind, ids, inputs, channel_count in jobs:
+        kind_dir = out_dir / kind
+        tiles = plan_tiles(ids, resolution, max_megapixels=max_tile_megapixels)
+        index = TileIndex(kind, plan_hash, resolution, settings.samples, channel_count, tiles)
+        write_index(kind_dir, index)
+        mine = parse_share(share, len(tiles))
+        done = [t for t in tiles if t.index in mine and tile_is_finished(kind_dir, index, t)]
+        result.tiles_skipped[kind] = len(done)
+        result.tiles_rendered[kind] = 0
+        offset = 0
+        for tile in tiles:
+            count = len(tile.texels)
+            if tile.index in mine and tile not in done:
+                work.append((kind, kind_dir, index, tile, tuple(a[offset:offset + count] for a in inputs)))
+            offset += count
+    total_pixels = sum(len(t.texels) for _, _, _, t, _ in work) or 1
+    finished_pixels, render_seconds, rays = 0, 0.0, 0
+    if not work:
+        progress(1.0, "all tiles already rendered")
+    else:
+        with tempfile.TemporaryDirectory(prefix=".sglf-render-", dir=out_dir) as tmp, \
+                _RenderScene(scene, plan, Path(tmp), _texel_inputs(atlas, texels)[0]) as renderer:
+            result.warnings.extend(renderer.warnings)
+            env_radiance = None
+            for kind, kind_dir, index, tile, (positions, normals, offsets) in work:
+                if should_cancel():
+                    raise BakeCancelled("render cancelled")
+                progress(finished_pixels / total_pixels, f"{kind} {tile.file} ({len(tile.texels)} texels)")
+                flags = np.ones(len(positions))
+                tick = time.perf_counter()
+                if kind == "env_visibility":
+                    if env_radiance is None:
+                        env_radiance = _render_env_radiance(renderer, resolution)
+                        write_exr(out_dir / "env_radiance.exr", env_radiance, precision="float",
+                                  metadata={"plan_hash": plan_hash})
+                    renderer.configure("env_occluded")
+                    pixels = renderer.render(positions, normals, offsets, flags, tile.columns, tile.rows,
+                                             resolution, f"{kind}_{tile.index}")
+                    render_seconds += time.perf_counter() - tick
+                    post = time.perf_counter()
+                    occluded = blocks_to_images(pixels, tile.columns, tile.rows, resolution, len(positions))
+                    radiance = env_radiance
+                    if index.channels == 1:
+                        occluded, radiance = _mono(occluded), _mono(env_radiance)
+                    count = len(positions)
+                    w = env_visibility(occluded.reshape(count, -1, index.channels),
+                                       radiance.reshape(-1, index.channels), normals,
+                                       _roughness(atlas, tile.texels), resolution)
+                    pixels = images_to_blocks(w.reshape(count, resolution, resolution, index.channels),
+                                              tile.columns, tile.rows)
+                    result.env_post_seconds += time.perf_counter() - post
+                else:
+                    renderer.configure(kind)
+                    pixels = renderer.render(positions, normals, offsets, flags, tile.columns, tile.rows,
+                                             resolution, f"{kind}_{tile.index}")
+                    seconds = time.perf_counter() - tick
+                    render_seconds += seconds
+                    rays += len(positions) * resolution * resolution * settings.samples // 2
+                if not np.all(np.isfinite(pixels)):
+                    result.warnings.append(f"{kind} {tile.file}: non-finite pixels set to 0")
+                    pixels = np.nan_to_num(pixels, nan=0.0, posinf=0.0, neginf=0.0)
+                write_exr(kind_dir / tile.file, pixels, precision="half",
+                          channels=["R", "G", "B"][:index.channels] if index.channels == 3 else ["Y"],
+                          metadata={"plan_hash": plan_hash, "tile_hash": tile.hash, "resolution": resolution,
+                                    "samples": index.samples, "kind": kind})
+                result.tiles_rendered[kind] += 1
+                finished_pixels += len(tile.texels)
+                progress(finished_pixels / total_pixels, f"{kind} {tile.file} done")
+    result.seconds = time.perf_counter() - start
+    result.rays_per_second = rays / render_seconds if render_seconds > 0 else 0.0
+    update_report(out_dir, plan_hash, timings_s={"render": result.seconds},
+                  render={"tiles_rendered": result.tiles_rendered, "tiles_skipped": result.tiles_skipped,
+                          "rays_per_second": round(result.rays_per_second),
+                          "env_post_seconds": round(result.env_post_seconds, 3), "share": share or "all"})
+    return result
+
+
+def _roughness(atlas, texels):
+    t = np.asarray(texels, np.int64)
+    return channels(atlas, "roughness")[t[:, 0], t[:, 1]].astype(np.float64)
+
+
+def _render_env_radiance(renderer, resolution):
+    """The unoccluded environment over the whole sphere, one block, ENV_RADIANCE_SAMPLES samples."""
+    renderer.configure("env_radiance")
+    pixels = renderer.render(np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), np.zeros(1), np.full(1, 2.0),
+                             1, 1, resolution, "env_radiance")
+    pixels = np.nan_to_num(pixels, nan=0.0, posinf=0.0, neginf=0.0)
+    return np.maximum(pixels, 0.0)

@@ -1,0 +1,185 @@
+"""Render stage with real Cycles renders (small sizes, CPU): the custom OSL camera, lamps, IWEV, resume."""
+import bpy  # noqa: I001
+import bmesh
+import numpy as np
+import pytest
+from mathutils import Matrix
+
+from blender_addon.capture import capture
+from blender_addon.render import render_stage
+from blender_addon.scene_analysis import build_plan, enable_nodes
+from shaders.bake_plan import BakeCancelled, BakeSettings
+from shaders.env_visibility import above_horizon_fraction
+from shaders.lightfield_tiles import read_images
+from shaders.octahedral import direction_to_pixel, pixel_directions
+from shaders.texel_maps import channels, read_texel_maps
+from tests.scene_helpers import cube, material, mesh_object, scene_with, uv_sphere
+
+pytestmark = pytest.mark.slow
+
+
+def _emissive(name, strength, color=(1.0, 1.0, 1.0)):
+    """A pure emitter: radiance = strength * color, and it reflects nothing."""
+    mat = bpy.data.materials.new(name)
+    enable_nodes(mat)
+    nodes = mat.node_tree.nodes
+    nodes.remove(nodes["Principled BSDF"])
+    emission = nodes.new("ShaderNodeEmission")
+    emission.inputs["Color"].default_value = (*color, 1)
+    emission.inputs["Strength"].default_value = strength
+    mat.node_tree.links.new(emission.outputs[0], nodes["Material Output"].inputs["Surface"])
+    return mat
+
+
+def _world(scene, color):
+    world = bpy.data.worlds.new("test world")
+    enable_nodes(world)
+    world.node_tree.nodes["Background"].inputs["Color"].default_value = (*color, 1)
+    scene.world = world
+
+
+def _bake(scene, out, resolution=16, samples=4, density=2.0, **kwargs):
+    plan = build_plan(scene, BakeSettings.from_preset("draft", lightfield_resolution=resolution, samples=samples,
+                                                      texel_density=density))
+    capture(scene, plan, out)
+    result = render_stage(scene, plan, out, **kwargs)
+    atlas, _ = read_texel_maps(out)
+    return plan, result, atlas
+
+
+def _texel_data(atlas, texels):
+    r, c = texels[:, 0], texels[:, 1]
+    return channels(atlas, "P.X", 3)[r, c].astype(float), channels(atlas, "Ng.X", 3)[r, c].astype(float)
+
+
+def test_probe_emitters_land_on_the_predicted_pixels_for_all_six_faces_of_a_box(tmp_path):
+    resolution = 16
+    grid = pixel_directions(resolution)
+    probes = [grid[4, 11], -grid[4, 11]]  # a pixel centre and its antipode: every face sees exactly one
+    objects = [mesh_object("Box", cube(1.0), material("glossy", 0.2))]
+    for i, d in enumerate(probes):
+        objects.append(mesh_object(f"Probe {i}", uv_sphere(3.0, 16, 8), _emissive(f"probe {i}", 50.0)))
+        objects[-1].location = 40.0 * d
+    scene = scene_with(*objects)
+    _world(scene, (0, 0, 0))
+    plan, result, atlas = _bake(scene, tmp_path, resolution=resolution, samples=4, density=4.0)
+    texels, images = read_images(tmp_path / "lightfield", plan.content_hash())
+    positions, normals = _texel_data(atlas, texels)
+    faces = set()
+    for p, n, image in zip(positions, normals, images):
+        seen = [d for d in probes if d @ n > 0]
+        assert len(seen) == 1
+        target = 40.0 * seen[0] - p
+        row, col = direction_to_pixel(target / np.linalg.norm(target), resolution)
+        luminance = image.sum(axis=-1)
+        assert np.unravel_index(np.argmax(luminance), luminance.shape) == (row, col)
+        faces.add(tuple(np.round(n).astype(int)))
+    assert len(faces) == 6
+
+
+def test_energy_inside_an_emitting_sphere_and_nothing_below_the_horizon(tmp_path):
+    radiance = 2.5
+    shell = mesh_object("Shell", uv_sphere(6.0, 32, 16), _emissive("shell", radiance))
+    floor = mesh_object("Disc", lambda bm: bmesh.ops.create_grid(bm, x_segments=1, y_segments=1, size=0.5),
+                        material("glossy", 0.2))
+    scene = scene_with(shell, floor)
+    _world(scene, (0, 0, 0))
+    plan, result, atlas = _bake(scene, tmp_path, resolution=16, samples=4, density=4.0)
+    texels, images = read_images(tmp_path / "lightfield", plan.content_hash())
+    _, normals = _texel_data(atlas, texels)
+    fraction = above_horizon_fraction(normals, 16).reshape(-1, 16, 16)
+    full, none = fraction == 1.0, fraction == 0.0
+    assert full.sum() > 0 and none.sum() > 0
+    np.testing.assert_allclose(images[full], radiance, rtol=2e-3)  # uniform emitter: no noise, half precision
+    assert np.all(images[none] == 0.0)
+    partial = ~full & ~none  # straddling the horizon: the cut keeps the same fraction (noisy at 4 spp)
+    assert images[partial].mean() == pytest.approx(radiance * fraction[partial].mean(), rel=0.05)
+
+
+def test_point_and_area_lamps_are_in_the_light_field_and_stay_untouched(tmp_path):
+    plane = mesh_object("Plane", lambda bm: bmesh.ops.create_grid(bm, x_segments=1, y_segments=1, size=0.5),
+                        material("glossy", 0.2))
+    point = bpy.data.objects.new("Point", bpy.data.lights.new("Point", "POINT"))
+    point.data.energy, point.data.shadow_soft_size = 200.0, 0.0
+    point.location = (3.0, 0.0, 3.0)
+    area = bpy.data.objects.new("Area", bpy.data.lights.new("Area", "AREA"))
+    area.data.energy, area.data.size = 200.0, 1.0
+    area.matrix_world = Matrix.Translation((-3.0, 0.0, 3.0)) @ Matrix.Rotation(-np.pi / 4, 4, "Y")
+    scene = scene_with(plane, point, area)
+    _world(scene, (0, 0, 0))
+    plan, result, atlas = _bake(scene, tmp_path, resolution=16, samples=16, density=4.0)
+    texels, images = read_images(tmp_path / "lightfield", plan.content_hash())
+    positions, _ = _texel_data(atlas, texels)
+    for lamp in (point, area):
+        hits = []
+        for p, image in zip(positions, images):
+            d = np.array(lamp.location) - p
+            row, col = direction_to_pixel(d / np.linalg.norm(d), 16)
+            hits.append(image[max(row - 1, 0):row + 2, max(col - 1, 0):col + 2].sum())
+        assert np.median(hits) > 1.0, lamp.name  # the lamp's radiance is there, the black world is 0
+    assert not point.visible_camera and point.data.shadow_soft_size == 0.0  # the user's lamp is unchanged
+    assert len([s for s in bpy.data.scenes if s.name.startswith("SGLF render")]) == 0
+
+
+def test_environment_visibility_open_sky_roof_and_roughness(tmp_path):
+    ground = {}
+    for name, rough, y in (("Smooth", 0.15, -1.0), ("Rough", 0.55, 1.0)):
+        ground[name] = mesh_object(name, lambda bm: bmesh.ops.create_grid(bm, x_segments=1, y_segments=1,
+                                                                          size=0.5), material(name, rough))
+        ground[name].matrix_world = Matrix.Translation((0.0, y, 0.0)) @ Matrix.Diagonal((16.0, 2.0, 1.0, 1.0))
+    roof = mesh_object("Roof", cube(1.0), material("roof", 0.9))
+    roof.matrix_world = Matrix.Translation((-4.0, 0.0, 0.6)) @ Matrix.Diagonal((8.0, 8.0, 0.2, 1.0))
+    scene = scene_with(*ground.values(), roof)
+    _world(scene, (1.0, 1.0, 1.0))
+    plan, result, atlas = _bake(scene, tmp_path, resolution=16, samples=8, density=2.0)
+    assert plan.environment.iwev and plan.environment.iwev_channels == 1
+    texels, w = read_images(tmp_path / "env_visibility", plan.content_hash())
+    positions, normals = _texel_data(atlas, texels)
+    zenith = direction_to_pixel(np.array([0.0, 0.0, 1.0]), 16)
+    w_up = w[:, zenith[0], zenith[1], 0]
+    assert np.all((w >= 0) & (w <= 1))
+    open_sky = positions[:, 0] > 3.0
+    away_from_roof = (pixel_directions(16)[..., 0] > 0) & (pixel_directions(16)[..., 2] > 0.2)
+    np.testing.assert_allclose(w[open_sky][:, away_from_roof], 1.0, atol=0.04)  # 8 spp at the horizon
+    under_roof = (positions[:, 0] < -3.0) & (positions[:, 0] > -5.0)
+    assert w_up[under_roof].max() < 0.05
+    # Just outside the roof's edge the zenith is open: a smooth lobe sees mostly sky, a rough one also the roof.
+    edge = (positions[:, 0] > 0.3) & (positions[:, 0] < 1.5)
+    smooth, rough = edge & (positions[:, 1] < 0), edge & (positions[:, 1] > 0)
+    assert w_up[smooth].mean() > w_up[rough].mean() + 0.05
+    lightfield_texels, lightfield = read_images(tmp_path / "lightfield", plan.content_hash())
+    assert lightfield[np.isin(lightfield_texels[:, 1], texels[open_sky][:, 1])].max() < 0.05  # world not in it
+
+
+def test_resume_after_cancel_renders_only_the_rest_and_farm_shares_merge(tmp_path):
+    obj = mesh_object("Ball", uv_sphere(1.0), material("glossy", 0.2))
+    lamp = bpy.data.objects.new("Lamp", bpy.data.lights.new("Lamp", "POINT"))
+    lamp.location = (2, 2, 2)
+    scene = scene_with(obj, lamp)
+    _world(scene, (0, 0, 0))
+    settings = BakeSettings.from_preset("draft", lightfield_resolution=8, samples=4, texel_density=4.0)
+    plan = build_plan(scene, settings)
+    for out in (tmp_path / "resumed", tmp_path / "fresh", tmp_path / "farm"):
+        capture(scene, plan, out)
+    calls = []
+
+    def cancel_after_two():
+        calls.append(1)
+        return len(calls) > 2
+
+    with pytest.raises(BakeCancelled):
+        render_stage(scene, plan, tmp_path / "resumed", max_tile_megapixels=0.003, should_cancel=cancel_after_two)
+    resumed = render_stage(scene, plan, tmp_path / "resumed", max_tile_megapixels=0.003)
+    total = resumed.tiles_rendered["lightfield"] + resumed.tiles_skipped["lightfield"]
+    assert resumed.tiles_skipped["lightfield"] == 2 and total > 3
+    with pytest.raises(Exception, match="not rendered"):
+        render_stage(scene, plan, tmp_path / "farm", max_tile_megapixels=0.003, share="1/2")
+        read_images(tmp_path / "farm" / "lightfield", plan.content_hash())
+    second = render_stage(scene, plan, tmp_path / "farm", max_tile_megapixels=0.003, share="2/2")
+    assert second.tiles_rendered["lightfield"] == total // 2
+    render_stage(scene, plan, tmp_path / "fresh", max_tile_megapixels=0.003)
+    reference = read_images(tmp_path / "fresh" / "lightfield", plan.content_hash())
+    for out in ("resumed", "farm"):
+        texels, images = read_images(tmp_path / out / "lightfield", plan.content_hash())
+        np.testing.assert_array_equal(texels, reference[0])
+        np.testing.assert_array_equal(images, reference[1])  # deterministic: identical, not merely close
