@@ -21,6 +21,7 @@ render says which and by how much). Sun lamps get at least the same angular size
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import sys
@@ -34,21 +35,23 @@ import numpy as np
 
 try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.bake_plan import BakeCancelled, BakeInputError
-    from ..shaders.bake_report import update_report
+    from ..shaders.bake_report import save_png, update_report
     from ..shaders.env_visibility import env_visibility
     from ..shaders.exr_io import read_exr, write_exr
     from ..shaders.lightfield_tiles import (DEFAULT_TILE_MEGAPIXELS, TileIndex, blocks_to_images, images_to_blocks,
-                                            parse_share, plan_tiles, tile_is_finished, write_index)
+                                            parse_share, plan_tiles, preview_mosaic, read_images, tile_is_finished,
+                                            write_index)
     from ..shaders.texel_maps import channels, read_texel_maps
     from .scene_analysis import active_scene
 except ImportError:  # bpy as a module with the repository on sys.path
     from blender_addon.scene_analysis import active_scene
     from shaders.bake_plan import BakeCancelled, BakeInputError
-    from shaders.bake_report import update_report
+    from shaders.bake_report import save_png, update_report
     from shaders.env_visibility import env_visibility
     from shaders.exr_io import read_exr, write_exr
     from shaders.lightfield_tiles import (DEFAULT_TILE_MEGAPIXELS, TileIndex, blocks_to_images, images_to_blocks,
-                                          parse_share, plan_tiles, tile_is_finished, write_index)
+                                          parse_share, plan_tiles, preview_mosaic, read_images, tile_is_finished,
+                                          write_index)
     from shaders.texel_maps import channels, read_texel_maps
 
 CAMERA_SHADER = Path(__file__).resolve().parent.parent / "shaders" / "lightfield_camera.osl"
@@ -72,6 +75,26 @@ class RenderResult:
 
 def _noop_progress(fraction, message):
     pass
+
+
+@contextlib.contextmanager
+def quiet_stdout():
+    """Cycles logs every render to the process's stdout (fd 1); machine-readable --json output and the
+    progress bar must not be interleaved with it. Errors still reach stderr."""
+    sys.stdout.flush()
+    try:
+        saved = os.dup(1)
+    except OSError:  # no real fd 1 (some embedded consoles): nothing to silence
+        yield
+        return
+    try:
+        with open(os.devnull, "wb") as devnull:
+            os.dup2(devnull.fileno(), 1)
+            yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
 
 
 def _import_oslquery():
@@ -275,7 +298,7 @@ class _RenderScene:
         self.scene.render.resolution_x, self.scene.render.resolution_y = columns * resolution, rows * resolution
         output = self.work_dir / f"{name}_render.exr"
         self.scene.render.filepath = str(output)
-        with active_scene(self.scene):
+        with active_scene(self.scene), quiet_stdout():
             bpy.ops.render.render(write_still=True, scene=self.scene.name)
         if not output.is_file():
             raise BakeInputError(f"Cycles wrote no image for {name}")
@@ -416,13 +439,29 @@ def render_stage(scene, plan, out_dir, *, share: str | None = None, midpoints: i
                 result.tiles_rendered[kind] += 1
                 finished_pixels += len(tile.texels)
                 progress(finished_pixels / total_pixels, f"{kind} {tile.file} done")
+    pictures = _save_previews(out_dir, plan_hash, [kind for kind, *_ in jobs])
     result.seconds = time.perf_counter() - start
     result.rays_per_second = rays / render_seconds if render_seconds > 0 else 0.0
     update_report(out_dir, plan_hash, timings_s={"render": result.seconds},
                   render={"tiles_rendered": result.tiles_rendered, "tiles_skipped": result.tiles_skipped,
                           "rays_per_second": round(result.rays_per_second),
-                          "env_post_seconds": round(result.env_post_seconds, 3), "share": share or "all"})
+                          "env_post_seconds": round(result.env_post_seconds, 3), "share": share or "all",
+                          "pictures": pictures})
     return result
+
+
+def _save_previews(out_dir, plan_hash, kinds) -> list[str]:
+    """A mosaic of 16 texels' images per pass, once every tile of it exists (not on a partial farm share)."""
+    names = []
+    for kind in kinds:
+        try:
+            _, images = read_images(out_dir / kind, plan_hash)
+        except BakeInputError:
+            continue
+        name = f"render_{kind}.png"
+        save_png(out_dir / name, preview_mosaic(images))
+        names.append(name)
+    return names
 
 
 def _roughness(atlas, texels):

@@ -21,7 +21,7 @@ if __package__ in (None, ""):  # run as a script: make the repository importable
 from shaders.bake_plan import PRESETS, BakeCancelled, BakeInputError, BakeSettings, write_json_atomic  # noqa: E402
 
 ALL_STAGES = ("capture", "render", "train", "apply", "evaluate")
-IMPLEMENTED_STAGES = ("capture",)  # the plan is always made; stages are added here as they land
+IMPLEMENTED_STAGES = ("capture", "render")  # the plan is always made; stages are added here as they land
 
 
 def script_args(argv: list[str]) -> list[str]:
@@ -43,6 +43,11 @@ def parse_args(args: list[str]) -> argparse.Namespace:
     p.add_argument("--sg-count", type=int, help="0 = automatic per material")
     p.add_argument("--training-budget", type=float, dest="training_budget_s")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
+    p.add_argument("--tile", metavar="i/N", help="render only share i of N of the tiles (render farms); "
+                   "the shares merge in the bake directory")
+    p.add_argument("--midpoints", type=int, default=0, metavar="M",
+                   help="also render M held-out light fields at texel midpoints (interpolation metric)")
+    p.add_argument("--tile-megapixels", type=float, default=4.0, help="render pixels per tile (memory)")
     p.add_argument("--lightmap-uv", default="", metavar="LAYER",
                    help="use this existing UV layer as the lightmap (validated) instead of generating SGLightmap")
     p.add_argument("--plan-only", action="store_true", help="print the bake plan and stop")
@@ -172,6 +177,22 @@ def run(ns, reporter: Reporter) -> int:
                        summary=(f"{result.texels} texels in a {result.atlas_width}x{result.atlas_height} atlas, "
                                 f"{result.coverage_percent:.1f}% covered, {result.pushed_out_texels} pushed out, "
                                 f"{result.buried_texels} buried"), warnings=result.warnings)
+    if "render" in ns.stages:
+        from blender_addon.render import render_stage
+
+        if not 0 < ns.tile_megapixels <= 256:
+            raise BakeInputError(f"--tile-megapixels {ns.tile_megapixels} is outside 0..256")
+        if not 0 <= ns.midpoints <= 100_000:
+            raise BakeInputError(f"--midpoints {ns.midpoints} is outside 0..100000")
+        result = render_stage(scene, plan, out, share=ns.tile, midpoints=ns.midpoints,
+                              max_tile_megapixels=ns.tile_megapixels,
+                              progress=lambda f, m: reporter.progress("render", f, m))
+        rendered = ", ".join(f"{k} {v}" for k, v in result.tiles_rendered.items())
+        skipped = sum(result.tiles_skipped.values())
+        reporter.event("stage", stage="render", seconds=round(result.seconds, 3),
+                       summary=(f"{result.texels} texels; tiles rendered: {rendered}"
+                                + (f"; {skipped} already finished" if skipped else "")
+                                + f"; {result.rays_per_second / 1e6:.2f} M rays/s"), warnings=result.warnings)
     reporter.event("done", message=f"bake directory {out} (report: {out / 'report.json'})", ok=True)
     return 0
 

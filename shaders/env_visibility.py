@@ -42,14 +42,22 @@ def above_horizon_fraction(normals: np.ndarray, resolution: int) -> np.ndarray:
     d = oct_decode(np.stack([u, v], axis=-1))  # (R*s, R*s, 3)
     d = d.reshape(resolution, s, resolution, s, 3).transpose(0, 2, 1, 3, 4).reshape(resolution * resolution, s * s, 3)
     normals = np.asarray(normals, np.float64).reshape(-1, 3)
-    out = np.empty((len(normals), resolution * resolution))
-    for start in range(0, len(normals), 256):
-        n = normals[start:start + 256]
+    unique, inverse = np.unique(np.round(normals, 6), axis=0, return_inverse=True)  # planes share one normal
+    out = np.empty((len(unique), resolution * resolution))
+    for start in range(0, len(unique), 256):
+        n = unique[start:start + 256]
         cosine = np.einsum("psc,tc->tps", d, n)
         # sub-samples exactly on the horizon (they exist: the fold diagonal passes through pixel corners)
         # count one half, as the continuous area does
         out[start:start + 256] = (0.5 + 0.5 * np.sign(np.where(np.abs(cosine) < 1e-12, 0.0, cosine))).mean(axis=-1)
-    return out
+    return out[inverse.reshape(-1)]
+
+
+def _apply_kernel(kernel, images):
+    """sum_i kernel[w, i] images[t, i, c] as one BLAS matrix product -> (T, P, C)."""
+    t, p, c = images.shape
+    flat = images.transpose(1, 0, 2).reshape(p, t * c)
+    return (kernel @ flat).reshape(p, t, c).transpose(1, 0, 2)
 
 
 def env_visibility(occluded: np.ndarray, unoccluded: np.ndarray, normals: np.ndarray, roughness: np.ndarray,
@@ -64,8 +72,8 @@ def env_visibility(occluded: np.ndarray, unoccluded: np.ndarray, normals: np.nda
     for key in np.unique(keys):
         members = np.flatnonzero(keys == key)
         kernel = reflection_kernel(resolution, key * ROUGHNESS_GROUP_STEP)
-        numerator = np.einsum("wi,tic->twc", kernel, occluded[members])
-        denominator = np.einsum("wi,tic->twc", kernel, mask[members][..., None] * unoccluded[None])
+        numerator = _apply_kernel(kernel, occluded[members])
+        denominator = _apply_kernel(kernel, mask[members][..., None] * unoccluded[None])
         tiny = 1e-12 * max(float(denominator.max(initial=0.0)), 1e-30)
         ratio = np.where(denominator > tiny, numerator / np.maximum(denominator, tiny), 1.0)
         result[members] = np.clip(ratio, 0.0, 1.0)

@@ -158,3 +158,23 @@ def read_images(kind_dir: Path, plan_hash: str | None = None):
                                        len(tile.texels)))
         texels.extend(tile.texels)
     return np.asarray(texels, np.int64), np.concatenate(images).astype(np.float32)
+
+
+def preview_mosaic(images: np.ndarray, count: int = 16, gap: int = 1) -> np.ndarray:
+    """Up to `count` evenly spaced per-texel images (T, R, R, C) side by side, tone mapped to [0, 1]
+    (x / (1 + x), gamma 2.2; one channel shown as grey) with `gap` black pixels between them."""
+    if len(images) == 0:
+        return np.zeros((1, 1, 3))
+    pick = np.unique(np.linspace(0, len(images) - 1, num=min(count, len(images))).astype(int))
+    chosen = np.asarray(images[pick], np.float64)
+    if chosen.shape[-1] == 1:
+        chosen = np.repeat(chosen, 3, axis=-1)
+    chosen = np.maximum(np.nan_to_num(chosen), 0.0)
+    mapped = (chosen / (1.0 + chosen)) ** (1 / 2.2)
+    columns, rows = tile_grid(len(pick))
+    r = images.shape[1]
+    mosaic = np.zeros((rows * (r + gap) - gap, columns * (r + gap) - gap, 3))
+    for k, image in enumerate(mapped):
+        y, x = divmod(k, columns)
+        mosaic[y * (r + gap):y * (r + gap) + r, x * (r + gap):x * (r + gap) + r] = image
+    return mosaic
