@@ -274,3 +274,17 @@ def test_cli_capture_writes_report_and_pictures(tmp_path):
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["texels"] > 0 and report["timings_s"]["capture"] > 0 and report["sg_count"] == 8
     assert all((tmp_path / name).is_file() for name in CAPTURE_PICTURES)
+
+
+def test_demo_scenes_save_as_blend_and_reopen(tmp_path):
+    for name in ("spheres", "hair"):
+        scene = build_demo_scene(f"demo:{name}")
+        path = tmp_path / f"{name}.blend"
+        with active_scene(scene):
+            bpy.ops.wm.save_as_mainfile(filepath=str(path), copy=True)
+        code = (f"import bpy; bpy.ops.wm.open_mainfile(filepath={str(path)!r}); "
+                f"s = bpy.data.scenes[{scene.name!r}]; print(sum(o.type == 'MESH' for o in s.objects), "
+                "sum(o.type == 'CURVES' for o in s.objects))")
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+        meshes, curves = map(int, out.stdout.strip().splitlines()[-1].split())
+        assert meshes >= 2 and curves == (1 if name == "hair" else 0)

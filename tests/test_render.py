@@ -84,10 +84,13 @@ def test_energy_inside_an_emitting_sphere_and_nothing_below_the_horizon(tmp_path
                         material("glossy", 0.2))
     scene = scene_with(shell, floor)
     _world(scene, (0, 0, 0))
-    plan, result, atlas = _bake(scene, tmp_path, resolution=16, samples=4, density=4.0)
+    plan, result, atlas = _bake(scene, tmp_path, resolution=16, samples=4, density=4.0, midpoints=6)
     texels, images = read_images(tmp_path / "lightfield", plan.content_hash())
     _, normals = _texel_data(atlas, texels)
     fraction = above_horizon_fraction(normals, 16).reshape(-1, 16, 16)
+    pairs, held_out = read_images(tmp_path / "midpoints", plan.content_hash())
+    assert pairs.shape == (6, 4) and held_out.shape == (6, 16, 16, 3)
+    np.testing.assert_allclose(held_out[fraction[:6] == 1.0], radiance, rtol=2e-3)  # midpoints see the shell too
     full, none = fraction == 1.0, fraction == 0.0
     assert full.sum() > 0 and none.sum() > 0
     np.testing.assert_allclose(images[full], radiance, rtol=2e-3)  # uniform emitter: no noise, half precision
@@ -250,3 +253,24 @@ def test_atlas_light_field_equals_a_panoramic_render_of_the_same_texel(tmp_path)
     assert ours.sum() == pytest.approx(theirs.sum(), rel=0.05)  # same energy
     rmse = np.sqrt(np.mean((ours - theirs) ** 2))
     assert rmse < 0.15 * theirs.mean()  # same picture within the noise of 64 spp on both sides
+
+
+def test_nan_and_negative_pixels_in_an_hdri_are_sanitised_with_a_warning(tmp_path):
+    plane = mesh_object("Plane", lambda bm: bmesh.ops.create_grid(bm, x_segments=1, y_segments=1, size=0.5),
+                        material("glossy", 0.2))
+    scene = scene_with(plane)
+    _world(scene, (1, 1, 1))
+    image = bpy.data.images.new("bad sky", 16, 8, float_buffer=True)
+    pixels = np.ones((8, 16, 4), np.float32)
+    pixels[2, 3, :3], pixels[5, 9, 0], pixels[6, 1, 1] = np.nan, -4.0, np.inf
+    image.pixels.foreach_set(pixels.ravel())
+    nodes = scene.world.node_tree.nodes
+    env = nodes.new("ShaderNodeTexEnvironment")
+    env.image = image
+    scene.world.node_tree.links.new(env.outputs["Color"], nodes["Background"].inputs["Color"])
+    plan, result, atlas = _bake(scene, tmp_path, resolution=8, samples=4, density=2.0)
+    assert any("'bad sky'" in w and "NaN/Inf/negative" in w for w in result.warnings)
+    for kind in ("lightfield", "env_visibility"):
+        _, images = read_images(tmp_path / kind, plan.content_hash())
+        assert np.all(np.isfinite(images)) and images.min() >= 0
+    assert np.isnan(np.array(image.pixels[:]).reshape(8, 16, 4)[2, 3, 0])  # the user's image is untouched
