@@ -499,7 +499,7 @@ def capture(scene, plan, out_dir, *, lightmap_uv_layer: str = "", progress=_noop
                            [asdict(t) for t in tiles], materials, warnings)
     _write_outputs(out_dir, plan, atlas, result)
     result.seconds = time.perf_counter() - start
-    update_report(out_dir, plan.content_hash(), timings_s={"capture": result.seconds}, texels=result.texels,
+    update_report(out_dir, plan.stage_hash("capture"), timings_s={"capture": result.seconds}, texels=result.texels,
                   coverage_percent=result.coverage_percent, pushed_out_texels=result.pushed_out_texels,
                   buried_texels=result.buried_texels, atlas=[atlas_w, atlas_h], sg_count=plan.max_sg_count,
                   capture_pictures=list(CAPTURE_PICTURES))
@@ -522,7 +522,7 @@ def _texel_atlas(maps, valid, materials):
 
 
 def _write_outputs(out_dir, plan, atlas, result):
-    plan_hash = plan.content_hash()
+    plan_hash = plan.stage_hash("capture")
     write_exr(out_dir / TEXELS_FILE, atlas, precision="float", channels=TEXEL_CHANNELS,
               metadata={"plan_hash": plan_hash, "stage": "capture"})
     info = {k: v for k, v in asdict(result).items() if k != "seconds"}

@@ -160,8 +160,8 @@ def build_spheres(scene):
     floor = _principled("Floor", color=(0.5, 0.5, 0.5), roughness=0.8)
     _mesh_object(scene, "Floor", _plane(10.0, 6.0), floor)
     for i, rough in enumerate((0.2, 0.3, 0.4, 0.5)):
-        mat = _principled(f"Glossy r{rough:.1f}", color=(0.8, 0.8, 0.8), roughness=rough, metallic=1.0)
-        _mesh_object(scene, f"Sphere r{rough:.1f}", _sphere(0.6), mat,
+        mat = _principled(f"Glossy (roughness {rough:.1f})", color=(0.8, 0.8, 0.8), roughness=rough, metallic=1.0)
+        _mesh_object(scene, f"Sphere (roughness {rough:.1f})", _sphere(0.6), mat,
                      Matrix.Translation((-2.4 + 1.6 * i, 0.0, 0.6)))
     for i, (color, radius) in enumerate((((1.0, 0.3, 0.2), 3.0), ((0.3, 1.0, 0.4), 3.6), ((0.3, 0.5, 1.0), 4.2))):
         mat = _principled(f"Arc {i}", color=(0, 0, 0), roughness=1.0, emission=color, strength=6.0)

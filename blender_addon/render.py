@@ -356,8 +356,8 @@ def render_stage(scene, plan, out_dir, *, share: str | None = None, midpoints: i
     """Render every pass the plan needs into `out_dir`; finished tiles are kept and skipped."""
     start = time.perf_counter()
     out_dir = Path(out_dir)
-    plan_hash = plan.content_hash()
-    atlas, _ = read_texel_maps(out_dir, plan_hash)
+    plan_hash = plan.stage_hash("render")
+    atlas, _ = read_texel_maps(out_dir, plan.stage_hash("capture"))
     settings = plan.settings
     resolution = settings.lightfield_resolution
     result = RenderResult()
@@ -442,7 +442,7 @@ def render_stage(scene, plan, out_dir, *, share: str | None = None, midpoints: i
     pictures = _save_previews(out_dir, plan_hash, [kind for kind, *_ in jobs])
     result.seconds = time.perf_counter() - start
     result.rays_per_second = rays / render_seconds if render_seconds > 0 else 0.0
-    update_report(out_dir, plan_hash, timings_s={"render": result.seconds},
+    update_report(out_dir, plan.stage_hash("capture"), timings_s={"render": result.seconds},
                   render={"tiles_rendered": result.tiles_rendered, "tiles_skipped": result.tiles_skipped,
                           "rays_per_second": round(result.rays_per_second),
                           "env_post_seconds": round(result.env_post_seconds, 3), "share": share or "all",

@@ -21,7 +21,7 @@ if __package__ in (None, ""):  # run as a script: make the repository importable
 from shaders.bake_plan import PRESETS, BakeCancelled, BakeInputError, BakeSettings, write_json_atomic  # noqa: E402
 
 ALL_STAGES = ("capture", "render", "train", "apply", "evaluate")
-IMPLEMENTED_STAGES = ("capture", "render")  # the plan is always made; stages are added here as they land
+IMPLEMENTED_STAGES = ("capture", "render", "train")  # the plan is always made; stages are added here as they land
 
 
 def script_args(argv: list[str]) -> list[str]:
@@ -193,6 +193,19 @@ def run(ns, reporter: Reporter) -> int:
                        summary=(f"{result.texels} texels; tiles rendered: {rendered}"
                                 + (f"; {skipped} already finished" if skipped else "")
                                 + f"; {result.rays_per_second / 1e6:.2f} M rays/s"), warnings=result.warnings)
+    if "train" in ns.stages:
+        try:
+            from training.train_stage import train_stage
+        except ImportError as exc:
+            raise BakeInputError(f"the train stage needs torch ({exc}); run it with a Python that has torch: "
+                                 "pip install torch==2.13.0, then python -m training.train_stage --out DIR") from exc
+        result = train_stage(out, plan, progress=lambda f, m: reporter.progress("train", f, m))
+        lf = result.metrics.get("lightfield", {})
+        summary = (f"{plan.max_sg_count} SGs, {result.bytes_per_texel} bytes/texel; light field loss "
+                   f"{lf.get('loss', float('nan')):.4f}, RMSE {lf.get('rmse', float('nan')):.4f}"
+                   + (f", midpoint RMSE {lf['midpoint']['rmse']:.4f}" if "midpoint" in lf else "")
+                   + f"; stopped: {', '.join(f'{k} {v}' for k, v in result.stopped_because.items())}")
+        reporter.event("stage", stage="train", seconds=round(result.seconds, 3), summary=summary, warnings=[])
     reporter.event("done", message=f"bake directory {out} (report: {out / 'report.json'})", ok=True)
     return 0
 

@@ -31,6 +31,15 @@ PRESETS = {
 ATLAS_RAYS_PER_SECOND_CPU = 4096 * 16 * 16 * 16 / 2 / 9.4
 
 
+# Settings each stage's output depends on (cumulative: a stage also depends on the ones before it).
+STAGE_SETTINGS = {
+    "capture": {"texel_density"},
+    "render": {"texel_density", "lightfield_resolution", "samples"},
+    "train": {"texel_density", "lightfield_resolution", "samples", "sg_count", "training_budget_s"},
+}
+STAGE_SETTINGS["apply"] = STAGE_SETTINGS["evaluate"] = STAGE_SETTINGS["train"]
+
+
 class BakeInputError(ValueError):
     """The scene or the settings cannot be baked; the message says why and names the object."""
 
@@ -154,9 +163,23 @@ class BakePlan:
         return data
 
     def content_hash(self) -> str:
-        """sha256 of what the bake depends on (settings, objects, environment, lights); stages store it
-        and refuse inputs from another plan."""
+        """sha256 of the whole plan (settings, objects, environment, lights): plan.json's tamper check."""
         payload = json.dumps(asdict(self), sort_keys=True, separators=(",", ":")).encode()
+        return hashlib.sha256(payload).hexdigest()[:16]
+
+    def stage_hash(self, stage: str) -> str:
+        """sha256 of what one stage's output depends on. Stages store it and refuse inputs made for another
+        plan, while a change that only later stages see (say the training budget) keeps earlier outputs."""
+        if stage not in STAGE_SETTINGS:
+            raise ValueError(f"unknown stage {stage!r}")
+        data = asdict(self)
+        data["settings"] = {k: v for k, v in data["settings"].items() if k in STAGE_SETTINGS[stage]}
+        if stage in ("capture", "render"):
+            for obj in data["objects"]:
+                for material in obj["materials"]:
+                    material.pop("sg_count", None)
+        data.pop("warnings", None)
+        payload = json.dumps([stage, data], sort_keys=True, separators=(",", ":")).encode()
         return hashlib.sha256(payload).hexdigest()[:16]
 
     @classmethod

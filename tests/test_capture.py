@@ -48,7 +48,7 @@ def room(tmp_path_factory):
 
 def test_room_texel_maps_on_disk_match_the_surfaces(room):
     scene, plan, result, out, _ = room
-    atlas, info = read_texel_maps(out, plan.content_hash())
+    atlas, info = read_texel_maps(out, plan.stage_hash("capture"))
     assert atlas.dtype == np.float32 and atlas.shape[:2] == (result.atlas_height, result.atlas_width)
     floor = _object_texels(atlas, info, "Floor")
     # 6 m x 6 m at 4 texels/m: 576 texels whose centres fall on the floor, plus the conservative rim.

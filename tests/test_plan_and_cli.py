@@ -21,7 +21,7 @@ DRAFT = BakeSettings.from_preset("draft")
 def test_spheres_plan_models_only_what_the_scene_requires():
     plan = build_plan(build_demo_scene("demo:spheres"), DRAFT)
     baked = {base_name(o.name) for o in plan.baked_objects}
-    assert baked == {"Sphere r0.2", "Sphere r0.3", "Sphere r0.4", "Sphere r0.5"}
+    assert baked == {f"Sphere (roughness {r})" for r in ("0.2", "0.3", "0.4", "0.5")}
     assert not plan.environment.iwev  # black world: no environment visibility
     assert sorted(map(base_name, plan.emissive_objects)) == ["Arc 0", "Arc 1", "Arc 2"] and plan.lamps == []
     assert plan.hair_objects == [] and "hair off" in plan.summary()

@@ -63,7 +63,7 @@ def test_probe_emitters_land_on_the_predicted_pixels_for_all_six_faces_of_a_box(
     scene = scene_with(*objects)
     _world(scene, (0, 0, 0))
     plan, result, atlas = _bake(scene, tmp_path, resolution=resolution, samples=4, density=4.0)
-    texels, images = read_images(tmp_path / "lightfield", plan.content_hash())
+    texels, images = read_images(tmp_path / "lightfield", plan.stage_hash("render"))
     positions, normals = _texel_data(atlas, texels)
     faces = set()
     for p, n, image in zip(positions, normals, images):
@@ -85,10 +85,10 @@ def test_energy_inside_an_emitting_sphere_and_nothing_below_the_horizon(tmp_path
     scene = scene_with(shell, floor)
     _world(scene, (0, 0, 0))
     plan, result, atlas = _bake(scene, tmp_path, resolution=16, samples=4, density=4.0, midpoints=6)
-    texels, images = read_images(tmp_path / "lightfield", plan.content_hash())
+    texels, images = read_images(tmp_path / "lightfield", plan.stage_hash("render"))
     _, normals = _texel_data(atlas, texels)
     fraction = above_horizon_fraction(normals, 16).reshape(-1, 16, 16)
-    pairs, held_out = read_images(tmp_path / "midpoints", plan.content_hash())
+    pairs, held_out = read_images(tmp_path / "midpoints", plan.stage_hash("render"))
     assert pairs.shape == (6, 4) and held_out.shape == (6, 16, 16, 3)
     np.testing.assert_allclose(held_out[fraction[:6] == 1.0], radiance, rtol=2e-3)  # midpoints see the shell too
     full, none = fraction == 1.0, fraction == 0.0
@@ -111,7 +111,7 @@ def test_point_and_area_lamps_are_in_the_light_field_and_stay_untouched(tmp_path
     scene = scene_with(plane, point, area)
     _world(scene, (0, 0, 0))
     plan, result, atlas = _bake(scene, tmp_path, resolution=16, samples=16, density=4.0)
-    texels, images = read_images(tmp_path / "lightfield", plan.content_hash())
+    texels, images = read_images(tmp_path / "lightfield", plan.stage_hash("render"))
     positions, _ = _texel_data(atlas, texels)
     for lamp in (point, area):
         hits = []
@@ -136,7 +136,7 @@ def test_environment_visibility_open_sky_roof_and_roughness(tmp_path):
     _world(scene, (1.0, 1.0, 1.0))
     plan, result, atlas = _bake(scene, tmp_path, resolution=16, samples=8, density=4.0)
     assert plan.environment.iwev and plan.environment.iwev_channels == 1
-    texels, w = read_images(tmp_path / "env_visibility", plan.content_hash())
+    texels, w = read_images(tmp_path / "env_visibility", plan.stage_hash("render"))
     positions, normals = _texel_data(atlas, texels)
     zenith = direction_to_pixel(np.array([0.0, 0.0, 1.0]), 16)
     w_up = w[:, zenith[0], zenith[1], 0]
@@ -151,7 +151,7 @@ def test_environment_visibility_open_sky_roof_and_roughness(tmp_path):
     smooth, rough = edge & (positions[:, 1] < 0), edge & (positions[:, 1] > 0)
     assert w_up[smooth].mean() > w_up[rough].mean() + 0.05
     # The world is IWEV's: the light field's sky is black, while the roof it lights still shows up in it.
-    _, lightfield = read_images(tmp_path / "lightfield", plan.content_hash())
+    _, lightfield = read_images(tmp_path / "lightfield", plan.stage_hash("render"))
     assert lightfield[open_sky][:, zenith[0], zenith[1]].max() == 0.0
     assert lightfield[open_sky].max() > 0.1
 
@@ -179,13 +179,13 @@ def test_resume_after_cancel_renders_only_the_rest_and_farm_shares_merge(tmp_pat
     assert resumed.tiles_skipped["lightfield"] == 2 and total > 3
     with pytest.raises(Exception, match="not rendered"):
         render_stage(scene, plan, tmp_path / "farm", max_tile_megapixels=0.003, share="1/2")
-        read_images(tmp_path / "farm" / "lightfield", plan.content_hash())
+        read_images(tmp_path / "farm" / "lightfield", plan.stage_hash("render"))
     second = render_stage(scene, plan, tmp_path / "farm", max_tile_megapixels=0.003, share="2/2")
     assert second.tiles_rendered["lightfield"] == total // 2
     render_stage(scene, plan, tmp_path / "fresh", max_tile_megapixels=0.003)
-    reference = read_images(tmp_path / "fresh" / "lightfield", plan.content_hash())
+    reference = read_images(tmp_path / "fresh" / "lightfield", plan.stage_hash("render"))
     for out in ("resumed", "farm"):
-        texels, images = read_images(tmp_path / out / "lightfield", plan.content_hash())
+        texels, images = read_images(tmp_path / out / "lightfield", plan.stage_hash("render"))
         np.testing.assert_array_equal(texels, reference[0])
         np.testing.assert_array_equal(images, reference[1])  # deterministic: identical, not merely close
 
@@ -225,7 +225,7 @@ def test_atlas_light_field_equals_a_panoramic_render_of_the_same_texel(tmp_path)
     capture(scene, plan, tmp_path)
     render_stage(scene, plan, tmp_path)
     atlas, _ = read_texel_maps(tmp_path)
-    texels, images = read_images(tmp_path / "lightfield", plan.content_hash())
+    texels, images = read_images(tmp_path / "lightfield", plan.stage_hash("render"))
     positions, normals = _texel_data(atlas, texels)
     k = int(np.argmin(np.linalg.norm(positions[:, :2], axis=1)))
     offset = channels(atlas, "ray_offset")[texels[k, 0], texels[k, 1]]
@@ -271,6 +271,6 @@ def test_nan_and_negative_pixels_in_an_hdri_are_sanitised_with_a_warning(tmp_pat
     plan, result, atlas = _bake(scene, tmp_path, resolution=8, samples=4, density=2.0)
     assert any("'bad sky'" in w and "NaN/Inf/negative" in w for w in result.warnings)
     for kind in ("lightfield", "env_visibility"):
-        _, images = read_images(tmp_path / kind, plan.content_hash())
+        _, images = read_images(tmp_path / kind, plan.stage_hash("render"))
         assert np.all(np.isfinite(images)) and images.min() >= 0
     assert np.isnan(np.array(image.pixels[:]).reshape(8, 16, 4)[2, 3, 0])  # the user's image is untouched

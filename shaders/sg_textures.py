@@ -1,0 +1,78 @@
+"""SG parameter textures in the bake directory (pure numpy): the train stage writes, apply reads.
+
+  sg_lightfield.exr       N SGs per texel of the light field (RGB amplitudes)
+  sg_env_visibility.exr   N SGs per texel of W_E (1 or 3 amplitude channels)
+Half-float, atlas-sized (row 0 = top, as texels.exr), channels ``sgJJ.axis.X/Y/Z``, ``sgJJ.sharpness``,
+``sgJJ.amp.R/G/B`` (or ``sgJJ.amp.Y``). Stored amplitudes are divided by the metadata's
+``amplitude_scale`` (shaders.sg_math.half_amplitude_scale) so HDR suns survive half floats. Gutters are
+dilated copies of the nearest texel, so bilinear lookups at chart borders stay meaningful.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+try:
+    from .bake_plan import BakeInputError
+    from .exr_io import read_exr, write_exr
+    from .sg_math import half_amplitude_scale, pack_sg_half, unpack_sg_half
+    from .texel_raster import dilate
+except ImportError:
+    from shaders.bake_plan import BakeInputError
+    from shaders.exr_io import read_exr, write_exr
+    from shaders.sg_math import half_amplitude_scale, pack_sg_half, unpack_sg_half
+    from shaders.texel_raster import dilate
+
+SG_FILES = {"lightfield": "sg_lightfield.exr", "env_visibility": "sg_env_visibility.exr"}
+GUTTER_PASSES = 3
+
+
+def channel_names(sg_count: int, amplitude_channels: int) -> list[str]:
+    amps = ["R", "G", "B"] if amplitude_channels == 3 else ["Y"]
+    names = []
+    for j in range(sg_count):
+        names += [f"sg{j:02d}.axis.X", f"sg{j:02d}.axis.Y", f"sg{j:02d}.axis.Z", f"sg{j:02d}.sharpness"]
+        names += [f"sg{j:02d}.amp.{c}" for c in amps]
+    return names
+
+
+def write_sg_texture(path, texels, axis, sharpness, amplitude, atlas_shape, metadata: dict) -> dict:
+    """Scatter per-texel SGs (T, N, ...) at atlas texels (T, 2) into a half EXR; returns the metadata written."""
+    height, width = atlas_shape
+    t, n, c = amplitude.shape
+    scale = half_amplitude_scale(amplitude.max(initial=0.0))
+    axis_h, sharp_h, amp_h = pack_sg_half(axis, sharpness, amplitude, scale)
+    per_texel = np.concatenate([axis_h.astype(np.float32), sharp_h.astype(np.float32)[..., None],
+                                amp_h.astype(np.float32)], axis=-1).reshape(t, -1)
+    grid = np.zeros((height, width, per_texel.shape[1]), np.float32)
+    grid[..., 2::4 + c] = 1.0  # empty texels: axis +Z, sharpness minimum, amplitude 0
+    grid[texels[:, 0], texels[:, 1]] = per_texel
+    valid = np.zeros((height, width), bool)
+    valid[texels[:, 0], texels[:, 1]] = True
+    filled, _ = dilate({"sg": grid}, valid, GUTTER_PASSES)
+    meta = {**metadata, "sg_count": n, "amplitude_channels": c, "amplitude_scale": repr(scale),
+            "packing": "per SG: axis xyz, sharpness, amplitude (divided by amplitude_scale)"}
+    write_exr(path, filled["sg"], precision="half", channels=channel_names(n, c), metadata=meta)
+    return meta
+
+
+def read_sg_texture(path, plan_hash: str | None = None):
+    """(axis (H, W, N, 3), sharpness (H, W, N), amplitude (H, W, N, C), metadata), sanitised and rescaled."""
+    data, _, meta = read_exr(path)
+    if plan_hash is not None and meta.get("plan_hash") != plan_hash:
+        raise BakeInputError(f"{path}: made for another plan; run the train stage again")
+    n, c = int(meta["sg_count"]), int(meta["amplitude_channels"])
+    data, _, _ = read_exr(path, channels=channel_names(n, c), dtype=np.float16)
+    h, w, _ = data.shape
+    per = data.reshape(h, w, n, 4 + c)
+    axis, sharpness, amplitude = unpack_sg_half(per[..., 0:3], per[..., 3], per[..., 4:], float(meta["amplitude_scale"]))
+    return axis, sharpness, amplitude, meta
+
+
+def bytes_per_texel(sg_count: int, amplitude_channels: int) -> int:
+    return 2 * sg_count * (4 + amplitude_channels)
+
+
+def sg_texture_path(out_dir, kind: str) -> Path:
+    return Path(out_dir) / SG_FILES[kind]

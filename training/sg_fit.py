@@ -1,0 +1,402 @@
+"""Fitting N free spherical Gaussians to per-texel light-field images (Paper I section 4, DESIGN section 5).
+
+Two optimisers share the parameterisation, the loss and the initialisation of the parameter read-out:
+  * the paper's CNN encoder (one network per scene, shared by every texel), and
+  * per-texel gradient descent on the same parameters (a baseline), optionally with the regulariser
+    that pulls the axes of neighbouring texels together.
+
+Parameters per SG: unit axis (3), sharpness (1), amplitude (C: 3 for RGB light fields, 1 for mono IWEV). Constraints by reparameterisation:
+axis = normalise(raw), sharpness = exp(a sigmoid between log SHARPNESS_MIN and log SHARPNESS_MAX),
+amplitude = softplus(raw) * amplitude_scale (a data scale; the half-float packing scale comes at export).
+Loss (per pixel and channel): (log(1 + T) - log(1 + P))^2 weighted by the pixel's exact solid angle,
+P evaluated at a direction jittered uniformly inside the pixel, zero below the texel's normal.
+"""
+from __future__ import annotations
+
+import io
+import math
+import os
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from shaders.sg_math import SHARPNESS_MAX, SHARPNESS_MIN
+from training.sg_torch import oct_decode, pixel_solid_angles, safe_normalize, sg_sum_eval
+
+def params_per_sg(channels: int = 3) -> int:
+    return 4 + channels
+LOG_SHARPNESS_MIN, LOG_SHARPNESS_MAX = math.log(SHARPNESS_MIN), math.log(SHARPNESS_MAX)
+
+
+@dataclass
+class TrainConfig:
+    sg_count: int = 16
+    time_budget_s: float = 60.0
+    max_epochs: int = 100_000
+    batch_texels: int = 256
+    learning_rate: float = 1e-3
+    seed: int = 0
+    device: str = "cpu"
+    plateau_epochs: int = 40  # stop when the best loss has not improved by plateau_rel for this many epochs
+    plateau_rel: float = 1e-3
+    checkpoint_every_s: float = 30.0
+    lr_drop_on_nan: float = 0.5
+
+
+@dataclass
+class TrainState:
+    epoch: int = 0
+    losses: list = field(default_factory=list)  # mean training loss per epoch
+    seconds: list = field(default_factory=list)  # cumulative training seconds at the end of each epoch
+    nan_recoveries: int = 0
+    stopped_because: str = ""
+
+
+@dataclass
+class LightFieldData:
+    """Per-texel training data: images (T, R, R, C) radiance, normals (T, 3)."""
+
+    images: torch.Tensor
+    normals: torch.Tensor
+
+    @property
+    def resolution(self) -> int:
+        return int(self.images.shape[1])
+
+    @property
+    def channels(self) -> int:
+        return int(self.images.shape[-1])
+
+    @classmethod
+    def from_numpy(cls, images, normals, device="cpu"):
+        images = np.maximum(np.nan_to_num(np.asarray(images, np.float32), nan=0.0, posinf=0.0, neginf=0.0), 0.0)
+        normals = np.asarray(normals, np.float32).reshape(-1, 3)
+        return cls(torch.from_numpy(images).to(device), torch.from_numpy(normals).to(device))
+
+
+def amplitude_scale_for(images: torch.Tensor) -> float:
+    """A data scale for amplitudes so the network's raw outputs start near 1: the 99th percentile."""
+    positive = images[images > 0]
+    if positive.numel() == 0:
+        return 1.0
+    sample = positive.flatten()[:: max(1, positive.numel() // 1_000_000)]
+    return float(max(torch.quantile(sample.float(), 0.99).item(), 1e-6))
+
+
+def constrain(raw: torch.Tensor, amplitude_scale: float):
+    """Raw (..., N, 4 + C) -> unit axis (..., N, 3), sharpness (..., N), amplitude (..., N, C)."""
+    axis = safe_normalize(raw[..., 0:3])
+    log_sharpness = LOG_SHARPNESS_MIN + (LOG_SHARPNESS_MAX - LOG_SHARPNESS_MIN) * torch.sigmoid(raw[..., 3] - 1.0)
+    sharpness = torch.exp(log_sharpness)
+    amplitude = nn.functional.softplus(raw[..., 4:]) * amplitude_scale
+    return axis, sharpness, amplitude
+
+
+def initial_raw(sg_count: int, channels: int = 3) -> torch.Tensor:
+    """Raw parameters (N, 4 + C) both optimisers start from: axes on a Fibonacci sphere, sharpness N/2 (lobes that
+    tile the sphere), amplitudes 0.3 x the data scale."""
+    from shaders.quadrature import fibonacci_sphere
+
+    axes = torch.tensor(fibonacci_sphere(sg_count)[0], dtype=torch.float32)
+    fraction = (math.log(max(sg_count / 2.0, 1.0)) - LOG_SHARPNESS_MIN) / (LOG_SHARPNESS_MAX - LOG_SHARPNESS_MIN)
+    sharpness = math.log(fraction / (1 - fraction)) + 1.0
+    amplitude = math.log(math.expm1(0.3))
+    raw = torch.empty((sg_count, params_per_sg(channels)))
+    raw[:, 0:3], raw[:, 3], raw[:, 4:] = axes, sharpness, amplitude
+    return raw
+
+
+def jittered_directions(batch: int, resolution: int, generator: torch.Generator, device="cpu"):
+    """(B, R, R, 3) directions uniform inside each octahedral pixel (fresh for every step)."""
+    centres = (torch.arange(resolution, dtype=torch.float32, device=device) + 0.5) / resolution * 2 - 1
+    v, u = torch.meshgrid(centres, centres, indexing="ij")
+    jitter = (torch.rand((batch, resolution, resolution, 2), generator=generator, device=device) - 0.5) * (
+        2.0 / resolution)
+    uv = torch.stack([u, v], dim=-1)[None] + jitter
+    return oct_decode(uv.clamp(-1.0, 1.0))
+
+
+def centre_directions(resolution: int, device="cpu"):
+    centres = (torch.arange(resolution, dtype=torch.float32, device=device) + 0.5) / resolution * 2 - 1
+    v, u = torch.meshgrid(centres, centres, indexing="ij")
+    return oct_decode(torch.stack([u, v], dim=-1))
+
+
+def predict(params, directions):
+    """Sum of SGs at directions (B, R, R, 3) for params ((B,N,3), (B,N), (B,N,C)) -> (B, R, R, C)."""
+    axis, sharpness, amplitude = params
+    return sg_sum_eval(directions, axis[:, None, None], sharpness[:, None, None], amplitude[:, None, None])
+
+
+def lightfield_loss(params, target, normals, directions, solid_angles):
+    """Solid-angle-weighted log-L2 over the upper hemisphere; returns (loss, weight sum)."""
+    prediction = predict(params, directions)
+    above = (directions * normals[:, None, None, :]).sum(-1) > 0
+    weight = solid_angles[None] * above
+    error = (torch.log1p(target) - torch.log1p(prediction.clamp_min(0))) ** 2
+    total = (error.mean(dim=-1) * weight).sum()
+    return total / weight.sum().clamp_min(1e-12), weight.sum()
+
+
+class SGEncoder(nn.Module):
+    """Paper I encoder: [conv 3x3 + ReLU + max-pool 2x2] blocks (32 channels, doubling) down to 4x4 (at most
+    four blocks), then one fully connected layer to N x (4 + C) parameters."""
+
+    def __init__(self, resolution: int, sg_count: int, in_channels: int = 3):
+        super().__init__()
+        if resolution < 8 or resolution & (resolution - 1):
+            raise ValueError(f"light-field resolution {resolution} must be a power of two >= 8")
+        layers, channels, size = [], in_channels, resolution
+        width = 32
+        while size > 4 and len(layers) < 4 * 3:
+            layers += [nn.Conv2d(channels, width, 3, padding=1), nn.ReLU(), nn.MaxPool2d(2)]
+            channels, size, width = width, size // 2, width * 2
+        self.features = nn.Sequential(*layers)
+        self.per_sg = params_per_sg(in_channels)
+        self.head = nn.Linear(channels * size * size, sg_count * self.per_sg)
+        with torch.no_grad():  # start every texel at the shared initial read-out, small input dependence
+            self.head.weight.mul_(0.1)
+            self.head.bias.copy_(initial_raw(sg_count, in_channels).flatten())
+        self.sg_count = sg_count
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        """images (B, R, R, C) radiance -> raw parameters (B, N, 4 + C)."""
+        x = torch.log1p(images.clamp_min(0)).permute(0, 3, 1, 2)
+        x = self.features(x).flatten(1)
+        return self.head(x).view(-1, self.sg_count, self.per_sg)
+
+
+class PerTexelParameters(nn.Module):
+    """The per-texel gradient-descent baseline: raw parameters for every texel, same read-out."""
+
+    def __init__(self, texels: int, sg_count: int, generator: torch.Generator, channels: int = 3):
+        super().__init__()
+        noise = torch.randn((texels, sg_count, params_per_sg(channels)), generator=generator) * 0.05
+        self.raw = nn.Parameter(initial_raw(sg_count, channels)[None] + noise)
+
+    def forward(self, index: torch.Tensor) -> torch.Tensor:
+        return self.raw[index]
+
+
+def _atomic_torch_save(obj, path: Path):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    buffer = io.BytesIO()
+    torch.save(obj, buffer)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(buffer.getvalue())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+class Trainer:
+    """Trains the CNN (mode 'cnn') or the per-texel baseline (mode 'per_texel') on LightFieldData.
+
+    Deterministic on the CPU for a seed; checkpoints (model, optimiser, RNG, curve) resume the same curve."""
+
+    def __init__(self, data: LightFieldData, config: TrainConfig, mode: str = "cnn", neighbours=None,
+                 axis_alignment: float = 0.0, checkpoint: Path | None = None):
+        if mode not in ("cnn", "per_texel"):
+            raise ValueError(f"mode must be 'cnn' or 'per_texel', got {mode!r}")
+        self.data, self.config, self.mode = data, config, mode
+        self.checkpoint = Path(checkpoint) if checkpoint else None
+        self.device = torch.device(config.device)
+        torch.manual_seed(config.seed)
+        self.generator = torch.Generator(device="cpu").manual_seed(config.seed)
+        self.amplitude_scale = amplitude_scale_for(data.images)
+        if mode == "cnn":
+            self.model = SGEncoder(data.resolution, config.sg_count, data.channels).to(self.device)
+        else:
+            self.model = PerTexelParameters(len(data.images), config.sg_count, self.generator,
+                                            data.channels).to(self.device)
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.learning_rate)
+        self.solid_angles = pixel_solid_angles(data.resolution, device=self.device)
+        self.neighbours = neighbours  # (M, 2) texel index pairs for the axis-alignment regulariser
+        self.axis_alignment = axis_alignment
+        self.state = TrainState()
+        if self.checkpoint is not None and self.checkpoint.is_file():
+            self._load(self.checkpoint)
+
+    # --- parameters --------------------------------------------------------------------------------
+    def raw_parameters(self, index: torch.Tensor) -> torch.Tensor:
+        if self.mode == "cnn":
+            return self.model(self.data.images[index].to(self.device))
+        return self.model(index.to(self.device))
+
+    @torch.no_grad()
+    def parameters_numpy(self, batch: int = 1024):
+        """Constrained parameters of every texel as numpy: axis (T,N,3), sharpness (T,N), amplitude (T,N,C).
+        Texels that received no light at all get exactly zero amplitudes."""
+        axes, sharpness, amplitude = [], [], []
+        for start in range(0, len(self.data.images), batch):
+            index = torch.arange(start, min(start + batch, len(self.data.images)))
+            a, s, m = constrain(self.raw_parameters(index), self.amplitude_scale)
+            black = self.data.images[index].flatten(1).amax(dim=1) <= 0
+            m = torch.where(black[:, None, None].to(m.device), torch.zeros_like(m), m)
+            axes.append(a.cpu().numpy()), sharpness.append(s.cpu().numpy()), amplitude.append(m.cpu().numpy())
+        return np.concatenate(axes), np.concatenate(sharpness), np.concatenate(amplitude)
+
+    # --- training ----------------------------------------------------------------------------------
+    def _batch_loss(self, index: torch.Tensor):
+        target = self.data.images[index].to(self.device)
+        normals = self.data.normals[index].to(self.device)
+        directions = jittered_directions(len(index), self.data.resolution, self.generator).to(self.device)
+        params = constrain(self.raw_parameters(index), self.amplitude_scale)
+        loss, _ = lightfield_loss(params, target, normals, directions, self.solid_angles)
+        if self.mode == "per_texel" and self.axis_alignment > 0 and self.neighbours is not None:
+            loss = loss + self.axis_alignment * self._alignment_penalty(index)
+        return loss
+
+    def _alignment_penalty(self, index):
+        """Mean over neighbour pairs inside the batch of (1 - a_j . b_j) per SG slot (Paper I's 'aligned axes')."""
+        inside = torch.zeros(len(self.data.images), dtype=torch.bool)
+        inside[index] = True
+        pairs = self.neighbours[inside[self.neighbours[:, 0]] & inside[self.neighbours[:, 1]]]
+        if len(pairs) == 0:
+            return torch.zeros((), device=self.device)
+        a = safe_normalize(self.model.raw[pairs[:, 0], :, 0:3])
+        b = safe_normalize(self.model.raw[pairs[:, 1], :, 0:3])
+        return (1 - (a * b).sum(-1)).mean()
+
+    def _step(self, index) -> float | None:
+        self.optimizer.zero_grad(set_to_none=True)
+        loss = self._batch_loss(index)
+        if not torch.isfinite(loss):
+            return None
+        loss.backward()
+        grads_ok = all(torch.isfinite(p.grad).all() for p in self.model.parameters() if p.grad is not None)
+        if not grads_ok:
+            return None
+        self.optimizer.step()
+        if not all(torch.isfinite(p).all() for p in self.model.parameters()):
+            return None
+        return float(loss.detach())
+
+    def _recover_from_nan(self, snapshot):
+        """Skip the step: restore the last good weights and optimiser, lower the learning rate."""
+        self.model.load_state_dict(snapshot["model"])
+        self.optimizer.load_state_dict(snapshot["optimizer"])
+        for group in self.optimizer.param_groups:
+            group["lr"] *= self.config.lr_drop_on_nan
+        self.state.nan_recoveries += 1
+
+    def train(self, progress=None, should_cancel=lambda: False, epochs: int | None = None) -> TrainState:
+        """Train until the time budget, a loss plateau, `epochs` more epochs, or cancellation."""
+        config, state = self.config, self.state
+        texels = len(self.data.images)
+        batch = max(1, min(config.batch_texels, texels))
+        spent = state.seconds[-1] if state.seconds else 0.0
+        last_checkpoint = time.perf_counter()
+        target_epoch = state.epoch + epochs if epochs is not None else config.max_epochs
+        state.stopped_because = ""
+        while state.epoch < target_epoch:
+            if should_cancel():
+                state.stopped_because = "cancelled"
+                break
+            if spent >= config.time_budget_s:
+                state.stopped_because = "time budget"
+                break
+            if self._plateaued():
+                state.stopped_because = "plateau"
+                break
+            tick = time.perf_counter()
+            order = torch.randperm(texels, generator=self.generator)
+            total, count = 0.0, 0
+            for start in range(0, texels, batch):
+                index = order[start:start + batch]
+                snapshot = {"model": {k: v.clone() for k, v in self.model.state_dict().items()},
+                            "optimizer": _clone_state(self.optimizer.state_dict())}
+                loss = self._step(index)
+                if loss is None:
+                    self._recover_from_nan(snapshot)
+                    continue
+                total += loss * len(index)
+                count += len(index)
+            spent += time.perf_counter() - tick
+            state.epoch += 1
+            state.losses.append(total / max(count, 1))
+            state.seconds.append(spent)
+            if progress is not None:
+                eta = None
+                if epochs is not None:
+                    eta = (target_epoch - state.epoch) * spent / max(state.epoch, 1)
+                progress(state.epoch, state.losses[-1], min(spent / config.time_budget_s, 1.0), eta)
+            if self.checkpoint is not None and time.perf_counter() - last_checkpoint > config.checkpoint_every_s:
+                self.save(self.checkpoint)
+                last_checkpoint = time.perf_counter()
+        else:
+            state.stopped_because = "epochs"
+        if self.checkpoint is not None:
+            self.save(self.checkpoint)
+        return state
+
+    def _plateaued(self) -> bool:
+        losses, window = self.state.losses, self.config.plateau_epochs
+        if len(losses) <= window:
+            return False
+        best_before = min(losses[:-window])
+        return min(losses[-window:]) > best_before * (1 - self.config.plateau_rel)
+
+    # --- checkpoints (torch.load with weights_only=True: no pickle of arbitrary objects) --------------
+    def save(self, path: Path):
+        _atomic_torch_save({
+            "mode": self.mode, "config": asdict(self.config), "amplitude_scale": self.amplitude_scale,
+            "model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
+            "generator": self.generator.get_state(), "torch_rng": torch.get_rng_state(),
+            "state": asdict(self.state),
+        }, Path(path))
+
+    def _load(self, path: Path):
+        data = torch.load(path, map_location=self.device, weights_only=True)
+        if data.get("mode") != self.mode or data["config"].get("sg_count") != self.config.sg_count:
+            raise ValueError(f"{path}: checkpoint of another training set-up; delete it to start afresh")
+        self.amplitude_scale = float(data["amplitude_scale"])
+        self.model.load_state_dict(data["model"])
+        self.optimizer.load_state_dict(data["optimizer"])
+        self.generator.set_state(data["generator"])
+        torch.set_rng_state(data["torch_rng"])
+        self.state = TrainState(**data["state"])
+
+
+def _clone_state(state):
+    if isinstance(state, torch.Tensor):
+        return state.clone()
+    if isinstance(state, dict):
+        return {k: _clone_state(v) for k, v in state.items()}
+    if isinstance(state, list):
+        return [_clone_state(v) for v in state]
+    return state
+
+
+# --- evaluation --------------------------------------------------------------------------------------
+def reconstruct(axis, sharpness, amplitude, resolution: int) -> np.ndarray:
+    """SG parameters (numpy) evaluated at pixel centres -> (T, R, R, C)."""
+    directions = centre_directions(resolution).numpy().astype(np.float64)
+    out = []
+    for start in range(0, len(axis), 512):
+        a, s, m = (np.asarray(x[start:start + 512], np.float64) for x in (axis, sharpness, amplitude))
+        lobes = np.exp(s[:, None, None, :] * (np.einsum("rcx,tnx->trcn", directions, a) - 1.0))
+        out.append(np.einsum("trcn,tnk->trck", lobes, m))
+    return np.concatenate(out).astype(np.float32)
+
+
+def error_metrics(prediction: np.ndarray, target: np.ndarray, normals: np.ndarray) -> dict:
+    """Solid-angle-weighted errors over the upper hemisphere (pixel centres): log loss, RMSE log and linear."""
+    resolution = target.shape[1]
+    directions = centre_directions(resolution).numpy()
+    weights = np.asarray(pixel_solid_angles(resolution).numpy(), np.float64)
+    above = np.einsum("rcx,tx->trc", directions, np.asarray(normals, np.float64)) > 0
+    w = (weights[None] * above)[..., None]
+    total = w.sum() * target.shape[-1]
+    log_error = (np.log1p(np.maximum(target, 0)) - np.log1p(np.maximum(prediction, 0))) ** 2
+    linear_error = (target.astype(np.float64) - prediction) ** 2
+    return {"loss": float((log_error * w).sum() / total), "rmse_log": float(np.sqrt((log_error * w).sum() / total)),
+            "rmse": float(np.sqrt((linear_error * w).sum() / total))}

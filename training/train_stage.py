@@ -1,0 +1,151 @@
+"""Train stage: fit SGs to the rendered light fields (and W_E) and write SG textures (needs torch, not bpy).
+
+Runs in any Python with torch: in-process under bpy-as-a-module, or as a worker process
+(`python -m training.train_stage --out DIR`) started by the add-on, whose own Python has no torch.
+Checkpoints live in DIR/train/ and are loaded with weights_only=True; a second run resumes them.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+if __package__ in (None, ""):
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from shaders.bake_plan import BakeCancelled, BakeInputError, BakePlan  # noqa: E402
+from shaders.bake_report import save_png, update_report  # noqa: E402
+from shaders.env_visibility import above_horizon_fraction  # noqa: E402
+from shaders.lightfield_tiles import preview_mosaic, read_images  # noqa: E402
+from shaders.sg_textures import bytes_per_texel, sg_texture_path, write_sg_texture  # noqa: E402
+from shaders.texel_maps import channels, read_texel_maps  # noqa: E402
+
+
+@dataclass
+class TrainResult:
+    seconds: float = 0.0
+    metrics: dict = field(default_factory=dict)  # kind -> metrics
+    epochs: dict = field(default_factory=dict)
+    stopped_because: dict = field(default_factory=dict)
+    bytes_per_texel: int = 0
+    files: list = field(default_factory=list)
+
+
+def midpoint_error(trainer_params, pairs_texels, texel_index, held_out, normals_mid, resolution):
+    """Reconstruction from parameters averaged between the two neighbours (what bilinear filtering does at the
+    midpoint: the axis is renormalised by the shader) against the rendered midpoint light field."""
+    from training.sg_fit import error_metrics, reconstruct
+
+    axis, sharpness, amplitude = trainer_params
+    a = np.array([texel_index[(int(r), int(c))] for r, c in pairs_texels[:, :2]])
+    b = np.array([texel_index[(int(r), int(c))] for r, c in pairs_texels[:, 2:]])
+    mid_axis = axis[a] + axis[b]
+    mid_axis /= np.maximum(np.linalg.norm(mid_axis, axis=-1, keepdims=True), 1e-8)
+    prediction = reconstruct(mid_axis, 0.5 * (sharpness[a] + sharpness[b]), 0.5 * (amplitude[a] + amplitude[b]),
+                             resolution)
+    return error_metrics(prediction, held_out, normals_mid)
+
+
+def train_stage(out_dir, plan: BakePlan, *, progress=None, should_cancel=lambda: False, device: str | None = None,
+                time_budget_s: float | None = None) -> TrainResult:
+    import torch
+
+    from training.sg_fit import LightFieldData, TrainConfig, Trainer, error_metrics, reconstruct
+
+    start = time.perf_counter()
+    out_dir = Path(out_dir)
+    plan_hash = plan.stage_hash("train")
+    atlas, _ = read_texel_maps(out_dir, plan.stage_hash("capture"))
+    settings = plan.settings
+    device = device or settings.device
+    if device == "cuda" and not torch.cuda.is_available():
+        raise BakeInputError("--device cuda: torch sees no CUDA device here; use --device cpu")
+    sg_count = plan.max_sg_count or settings.sg_count or 16
+    budget = time_budget_s if time_budget_s is not None else settings.training_budget_s
+    kinds = ["lightfield"] + (["env_visibility"] if plan.environment.iwev else [])
+    result = TrainResult()
+    for k, kind in enumerate(kinds):
+        texels, images = read_images(out_dir / kind, plan.stage_hash("render"))
+        normals = channels(atlas, "Ng.X", 3)[texels[:, 0], texels[:, 1]]
+        data = LightFieldData.from_numpy(images, normals, device=device)
+        config = TrainConfig(sg_count=sg_count, time_budget_s=budget / len(kinds), device=device)
+        # Keyed by the rendered data and N, not the budget: a larger budget continues the same curve.
+        checkpoint = out_dir / "train" / f"{kind}_{plan.stage_hash('render')}_n{sg_count}.pt"
+        trainer = Trainer(data, config, checkpoint=checkpoint)
+
+        def report(epoch, loss, fraction, eta, kind=kind, k=k):
+            if progress is not None:
+                progress((k + fraction) / len(kinds), f"{kind}: epoch {epoch}, loss {loss:.5f}")
+
+        state = trainer.train(progress=report, should_cancel=should_cancel)
+        if state.stopped_because == "cancelled":
+            raise BakeCancelled("training cancelled; the checkpoint resumes it")
+        axis, sharpness, amplitude = trainer.parameters_numpy()
+        prediction = reconstruct(axis, sharpness, amplitude, data.resolution)
+        metrics = error_metrics(prediction, images, normals)
+        picture = f"train_{kind}.png"  # rendered (left) | SG reconstruction (right), 16 texels each
+        above = above_horizon_fraction(normals, data.resolution).reshape(prediction.shape[:3])[..., None]
+        target_mosaic, predicted_mosaic = preview_mosaic(images), preview_mosaic(prediction * above)
+        gap = np.ones((target_mosaic.shape[0], 2, 3))
+        save_png(out_dir / picture, np.concatenate([target_mosaic, gap, predicted_mosaic], axis=1))
+        result.files.append(picture)
+        if kind == "lightfield" and (out_dir / "midpoints").is_dir():
+            pairs, held_out = read_images(out_dir / "midpoints", plan.stage_hash("render"))
+            index = {(int(r), int(c)): i for i, (r, c) in enumerate(texels)}
+            normal_mid = channels(atlas, "Ng.X", 3)[pairs[:, 0], pairs[:, 1]] + \
+                channels(atlas, "Ng.X", 3)[pairs[:, 2], pairs[:, 3]]
+            normal_mid /= np.maximum(np.linalg.norm(normal_mid, axis=1, keepdims=True), 1e-8)
+            metrics["midpoint"] = midpoint_error((axis, sharpness, amplitude), pairs, index, held_out, normal_mid,
+                                                 data.resolution)
+        path = sg_texture_path(out_dir, kind)
+        write_sg_texture(path, texels, axis, sharpness, amplitude, atlas.shape[:2],
+                         {"plan_hash": plan_hash, "kind": kind, "epochs": state.epoch})
+        result.files.append(path.name)
+        result.metrics[kind] = {k2: (round(v, 6) if isinstance(v, float) else v) for k2, v in metrics.items()}
+        result.epochs[kind] = state.epoch
+        result.stopped_because[kind] = state.stopped_because
+        result.bytes_per_texel += bytes_per_texel(sg_count, images.shape[-1])
+    result.seconds = time.perf_counter() - start
+    update_report(out_dir, plan.stage_hash("capture"), timings_s={"train": result.seconds}, sg_count=sg_count,
+                  bytes_per_texel=result.bytes_per_texel,
+                  train={"metrics": result.metrics, "epochs": result.epochs, "stopped_because": result.stopped_because,
+                         "device": device, "files": result.files})
+    if progress is not None:
+        progress(1.0, "SG textures written")
+    return result
+
+
+def main(argv=None) -> int:
+    """Worker entry point: train the bake in DIR from its plan.json (used by the add-on's worker process)."""
+    p = argparse.ArgumentParser(prog="python -m training.train_stage")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--device", choices=("cpu", "cuda"))
+    p.add_argument("--json", action="store_true")
+    ns = p.parse_args(argv)
+    try:
+        plan = BakePlan.from_dict(json.loads((ns.out / "plan.json").read_text()))
+
+        def progress(fraction, message):
+            if ns.json:
+                print(json.dumps({"event": "progress", "stage": "train", "fraction": round(fraction, 4),
+                                  "message": message}), flush=True)
+
+        result = train_stage(ns.out, plan, progress=progress, device=ns.device)
+        print(json.dumps({"event": "stage", "stage": "train", "seconds": round(result.seconds, 3),
+                          "metrics": result.metrics}), flush=True)
+        return 0
+    except (BakeInputError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    except (BakeCancelled, KeyboardInterrupt):
+        print("error: cancelled; the checkpoint resumes training", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
