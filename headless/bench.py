@@ -9,6 +9,10 @@ writes them to bench_out/bench.json.
             the below-horizon cut (full-sphere rays for comparison), and IWEV post-processing of
             `courtyard` against its light-field render. Targets: atlas >= 10x faster than per texel;
             IWEV post-processing < 10 % of the light-field render.
+  train     `spheres` (and with --full `room` at ~64^2 texels): the CNN against per-texel gradient descent
+            (with and without the axis-alignment regulariser) at equal training time, fixed SG12 by NNLS
+            and L2 SH by least squares: loss, RMSE, held-out midpoint error, bytes per texel; loss-vs-time
+            plot and table in bench_out/train_<scene>.png / bench.json.
 """
 from __future__ import annotations
 
@@ -131,6 +135,117 @@ def bench_render(out_root: Path, per_texel_subset: int = 24) -> dict:
     return row
 
 
+def _neighbour_pairs(texels):
+    """Index pairs of texels adjacent in the atlas (right and down neighbours)."""
+    import numpy as np
+
+    index = {(int(r), int(c)): i for i, (r, c) in enumerate(texels)}
+    pairs = [(i, index[(r + dr, c + dc)]) for (r, c), i in index.items() for dr, dc in ((0, 1), (1, 0))
+             if (r + dr, c + dc) in index]
+    return np.array(pairs, np.int64).reshape(-1, 2)
+
+
+def bench_train(out_root: Path, scene_name: str = "spheres", budget_s: float = 60.0, sg_count: int = 16,
+                density: float | None = None, midpoints: int = 128) -> dict:
+    import numpy as np
+    import torch
+
+    from blender_addon.capture import capture
+    from blender_addon.demo_scenes import build_demo_scene
+    from blender_addon.render import render_stage
+    from blender_addon.scene_analysis import build_plan
+    from shaders.lightfield_tiles import read_images
+    from shaders.texel_maps import channels, read_texel_maps
+    from training.baselines import (bytes_per_texel_fixed_sg, bytes_per_texel_sh_l2, eval_fixed_sg, eval_sh,
+                                    fit_fixed_sg, fit_sh_l2)
+    from training.sg_fit import LightFieldData, TrainConfig, Trainer, error_metrics, reconstruct
+
+    scene = build_demo_scene(scene_name)
+    settings = BakeSettings.from_preset("draft", lightfield_resolution=16, samples=32, sg_count=sg_count,
+                                        **({"texel_density": density} if density else {}))
+    plan = build_plan(scene, settings)
+    out = out_root / f"train_{scene_name}"
+    capture(scene, plan, out)
+    render_stage(scene, plan, out, midpoints=midpoints)
+    atlas, _ = read_texel_maps(out)
+    texels, images = read_images(out / "lightfield", plan.stage_hash("render"))
+    pairs, held_out = read_images(out / "midpoints", plan.stage_hash("render"))
+    normals = channels(atlas, "Ng.X", 3)[texels[:, 0], texels[:, 1]].astype(np.float64)
+    index = {(int(r), int(c)): i for i, (r, c) in enumerate(texels)}
+    a_idx = np.array([index[(int(r), int(c))] for r, c in pairs[:, :2]])
+    b_idx = np.array([index[(int(r), int(c))] for r, c in pairs[:, 2:]])
+    n_mid = normals[a_idx] + normals[b_idx]
+    n_mid /= np.linalg.norm(n_mid, axis=1, keepdims=True)
+    rows, curves = [], {}
+
+    def add(name, prediction, midpoint_prediction, seconds, bytes_per_texel):
+        metrics = error_metrics(prediction, images, normals)
+        mid = error_metrics(midpoint_prediction, held_out, n_mid)
+        rows.append({"method": name, "seconds": round(seconds, 1), "loss": metrics["loss"], "rmse": metrics["rmse"],
+                     "rmse_log": metrics["rmse_log"], "midpoint_rmse": mid["rmse"], "midpoint_loss": mid["loss"],
+                     "bytes_per_texel": bytes_per_texel})
+
+    data = LightFieldData.from_numpy(images, normals)
+    neighbours = torch.from_numpy(_neighbour_pairs(texels))
+    for name, mode, lr, align in (("CNN (ours)", "cnn", 1e-3, 0.0), ("per-texel GD", "per_texel", 1e-2, 0.0),
+                                  ("per-texel GD + aligned axes", "per_texel", 1e-2, 0.05)):
+        torch.manual_seed(0)
+        trainer = Trainer(data, TrainConfig(sg_count=sg_count, time_budget_s=budget_s, learning_rate=lr,
+                                            plateau_epochs=10**9), mode=mode, neighbours=neighbours,
+                          axis_alignment=align)
+        state = trainer.train()
+        a, s, m = trainer.parameters_numpy()
+        mid_axis = a[a_idx] + a[b_idx]
+        mid_axis /= np.maximum(np.linalg.norm(mid_axis, axis=-1, keepdims=True), 1e-8)
+        add(name, reconstruct(a, s, m, 16),
+            reconstruct(mid_axis, 0.5 * (s[a_idx] + s[b_idx]), 0.5 * (m[a_idx] + m[b_idx]), 16),
+            state.seconds[-1], 2 * sg_count * 7)
+        curves[name] = (state.seconds, state.losses)
+    start = time.perf_counter()
+    axes, sharpness, amps = fit_fixed_sg(images, normals, 12)
+    add(f"fixed SG12 (NNLS, sharpness {sharpness:g})", eval_fixed_sg(axes, sharpness, amps, 16),
+        eval_fixed_sg(axes, sharpness, 0.5 * (amps[a_idx] + amps[b_idx]), 16), time.perf_counter() - start,
+        bytes_per_texel_fixed_sg(12))
+    start = time.perf_counter()
+    coeffs = fit_sh_l2(images, normals)
+    add("SH L2 (least squares)", eval_sh(coeffs, 16), eval_sh(0.5 * (coeffs[a_idx] + coeffs[b_idx]), 16),
+        time.perf_counter() - start, bytes_per_texel_sh_l2())
+    _plot_training(out_root / f"train_{scene_name}.png", curves, rows, scene_name)
+    print(f"\ntrain ({scene_name}: {len(texels)} texels, R = 16, N = {sg_count}, {budget_s:g} s per iterative method, "
+          f"{len(pairs)} held-out midpoints)")
+    print(f"  {'method':<40} {'s':>6} {'loss':>9} {'RMSE':>8} {'RMSE log':>9} {'mid RMSE':>9} {'bytes':>6}")
+    for r in rows:
+        print(f"  {r['method']:<40} {r['seconds']:>6.1f} {r['loss']:>9.5f} {r['rmse']:>8.4f} {r['rmse_log']:>9.4f} "
+              f"{r['midpoint_rmse']:>9.4f} {r['bytes_per_texel']:>6}")
+    cnn, gd = rows[0], rows[1]
+    print(f"  CNN midpoint RMSE / per-texel GD: {cnn['midpoint_rmse'] / gd['midpoint_rmse']:.2f} (target <= 0.67); "
+          f"SG12 RMSE / CNN: {rows[3]['rmse'] / cnn['rmse']:.2f}, SH L2 RMSE / CNN: {rows[4]['rmse'] / cnn['rmse']:.2f} "
+          "(target >= 2)")
+    return {"scene": scene_name, "texels": len(texels), "rows": rows}
+
+
+def _plot_training(path: Path, curves: dict, rows: list, scene_name: str):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4))
+    for name, (seconds, losses) in curves.items():
+        left.plot(seconds, losses, label=name)
+    left.set_xlabel("training seconds (CPU)"), left.set_ylabel("training loss (log L2, jittered)")
+    left.set_yscale("log"), left.legend(), left.set_title(f"{scene_name}: loss vs time")
+    names = [r["method"].split(" (")[0] for r in rows]
+    x = range(len(rows))
+    right.bar([i - 0.2 for i in x], [r["rmse"] for r in rows], 0.4, label="RMSE (texels)")
+    right.bar([i + 0.2 for i in x], [r["midpoint_rmse"] for r in rows], 0.4, label="RMSE (held-out midpoints)")
+    right.set_xticks(list(x), names, rotation=20, ha="right"), right.legend(), right.set_title("linear RMSE")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m headless.bench", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -139,7 +254,10 @@ def main(argv=None) -> int:
     ns = p.parse_args(argv)
     scenes = ["room"] if ns.quick else ["room", "spheres", "courtyard"]
     presets = ["draft", "preview"] if ns.quick else list(PRESETS)
-    results = {"capture": bench_capture(scenes, presets, ns.out), "render": bench_render(ns.out)}
+    results = {"capture": bench_capture(scenes, presets, ns.out), "render": bench_render(ns.out),
+               "train": [bench_train(ns.out, "spheres", budget_s=30.0 if ns.quick else 120.0)]}
+    if not ns.quick:
+        results["train"].append(bench_train(ns.out, "room", budget_s=300.0, density=8.9))
     write_json_atomic(ns.out / "bench.json", results)
     print(f"\nwritten: {ns.out / 'bench.json'}")
     return 0

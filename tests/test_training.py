@@ -140,3 +140,19 @@ def test_sg_texture_round_trip_keeps_hdr_and_dilates_gutters(tmp_path):
     assert m.max() < AMPLITUDE_MAX_HALF * float(meta["amplitude_scale"])
     np.testing.assert_allclose(m[0, 0], m[1, 1], rtol=0)  # the gutter corner copies its neighbour
     assert np.all(m[7, 9] == 0)  # beyond the dilation: empty
+
+
+def test_baselines_fit_what_they_can_represent():
+    from training.baselines import eval_fixed_sg, eval_sh, fit_fixed_sg, fit_sh_l2, sh_basis
+    from shaders.octahedral import pixel_directions
+
+    normals = np.array([[0.0, 0.0, 1.0]] * 4)
+    d = pixel_directions(R)
+    rng = np.random.default_rng(3)
+    coeffs = rng.normal(size=(4, 9, 3))
+    images = np.einsum("rck,tkn->trcn", sh_basis(d), coeffs)  # exactly L2 SH (negative values included)
+    np.testing.assert_allclose(eval_sh(fit_sh_l2(images, normals), R)[:, d[..., 2] > 0.2],
+                               images[:, d[..., 2] > 0.2], atol=2e-3)
+    axes, sharpness, amps = fit_fixed_sg(images * 0 + 1.0, normals, 12, 4.0)  # a constant sky
+    recon = eval_fixed_sg(axes, sharpness, amps, R)
+    assert np.all(amps >= 0) and np.abs(recon[:, d[..., 2] > 0.3] - 1.0).max() < 0.2  # 12 lobes ripple
