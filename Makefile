@@ -14,11 +14,11 @@ $(STAMP): requirements.txt
 	rm -f $(VENV)/.installed-*
 	touch $(STAMP)
 
-# Until every bake stage lands, the demo runs the stages that exist on demo:spheres (plan, capture),
-# the SG math check and the extension build.
+# Until every bake stage lands, the demo runs the stages that exist on demo:spheres (plan, capture,
+# render, train), the SG math check and the extension build.
 demo: $(STAMP)
 	$(PY) -m shaders.check_math --quick
-	$(PY) headless/bake.py --scene demo:spheres --preset draft --out $(DEMO_OUT) --stages capture
+	$(PY) headless/bake.py --scene demo:spheres --preset draft --out $(DEMO_OUT) --stages capture,render,train --midpoints 128
 	$(PY) -m headless.build_extension --out dist
 
 test: $(STAMP)

@@ -47,7 +47,10 @@ except ImportError:  # bpy as a module with the repository on sys.path
 
 LIGHTMAP_LAYER = "SGLightmap"
 OWNER_KEY = "sglf_lightmap_layer"  # on a mesh: the name of the UV layer SG Lightfield made there
-RECT_KEY = "sglf_lightmap_rect"  # on an object: (u0, v0, su, sv) of its tile in the atlas
+# On an object: its tile in the atlas as atlas_uv = offset + lightmap_uv * scale (two 3-float properties,
+# so a shader's Object Attribute node reads each as a plain vector).
+OFFSET_KEY, SCALE_KEY = "sglf_lightmap_offset", "sglf_lightmap_scale"
+TILE_KEYS = (OFFSET_KEY, SCALE_KEY)
 TEXEL_SCALE_KEY = "sglf_texel_scale"  # on an object: multiplier of the scene's texel density
 MAX_UV_LAYERS = 8  # Blender's limit per mesh
 UV_PADDING = 2  # texels between charts (bilinear filtering needs >= 1 after instance scaling)
@@ -178,8 +181,9 @@ def remove_lightmap_uvs(scene) -> int:
     """Undo capture's changes: drop the SGLightmap layers and tile rectangles it added. Returns the count."""
     removed = 0
     for obj in scene.objects:
-        if RECT_KEY in obj:
-            del obj[RECT_KEY]
+        for key in TILE_KEYS:
+            if key in obj:
+                del obj[key]
         mesh = obj.data if obj.type == "MESH" else None
         if mesh is not None and mesh.get(OWNER_KEY) == LIGHTMAP_LAYER:
             layer = mesh.uv_layers.get(LIGHTMAP_LAYER)
@@ -449,7 +453,8 @@ def capture(scene, plan, out_dir, *, lightmap_uv_layer: str = "", progress=_noop
     with active_scene(scene):
         tiles, atlas_w, atlas_h = _plan_layout(objects, plan.settings, lightmap_uv_layer, warnings)
         for obj, tile in zip(objects, tiles):
-            obj[RECT_KEY] = list(tile.rect)
+            u0, v0, su, sv = tile.rect
+            obj[OFFSET_KEY], obj[SCALE_KEY] = [u0, v0, 0.0], [su, sv, 1.0]
         depsgraph = bpy.context.evaluated_depsgraph_get()
         depsgraph.update()
         materials = _material_table(objects, plan)
@@ -528,5 +533,5 @@ def _write_outputs(out_dir, plan, atlas, result):
     info = {k: v for k, v in asdict(result).items() if k != "seconds"}
     write_json_atomic(out_dir / TEXELS_JSON, {"plan_hash": plan_hash, "channels": TEXEL_CHANNELS,
                                               "rows": "row 0 = top of the atlas (v near 1)",
-                                              "lightmap_layer": LIGHTMAP_LAYER, "rect_property": RECT_KEY, **info})
+                                              "lightmap_layer": LIGHTMAP_LAYER, "tile_properties": list(TILE_KEYS), **info})
     save_capture_pictures(out_dir, atlas)

@@ -21,7 +21,7 @@ if __package__ in (None, ""):  # run as a script: make the repository importable
 from shaders.bake_plan import PRESETS, BakeCancelled, BakeInputError, BakeSettings, write_json_atomic  # noqa: E402
 
 ALL_STAGES = ("capture", "render", "train", "apply", "evaluate")
-IMPLEMENTED_STAGES = ("capture", "render", "train")  # the plan is always made; stages are added here as they land
+IMPLEMENTED_STAGES = ("capture", "render", "train", "apply")  # the plan is always made; stages are added here as they land
 
 
 def script_args(argv: list[str]) -> list[str]:
@@ -48,6 +48,9 @@ def parse_args(args: list[str]) -> argparse.Namespace:
     p.add_argument("--midpoints", type=int, default=0, metavar="M",
                    help="also render M held-out light fields at texel midpoints (interpolation metric)")
     p.add_argument("--tile-megapixels", type=float, default=4.0, help="render pixels per tile (memory)")
+    p.add_argument("--in-place", action="store_true", help="save the baked scene over --blend instead of DIR/baked.blend")
+    p.add_argument("--external-images", action="store_true",
+                   help="keep the SG image as a file beside the bake (relative path) instead of packing it")
     p.add_argument("--lightmap-uv", default="", metavar="LAYER",
                    help="use this existing UV layer as the lightmap (validated) instead of generating SGLightmap")
     p.add_argument("--plan-only", action="store_true", help="print the bake plan and stop")
@@ -79,6 +82,9 @@ class Reporter:
         """A progress bar with ETA on stderr for people; a JSON line for machines."""
         now = time.monotonic()
         start = self._stage_start.setdefault(stage, now)
+        if not self.as_json and fraction < 1 and now - getattr(self, "_last_bar", 0.0) < 0.25:
+            return  # a person reads a few updates a second, not every epoch
+        self._last_bar = now
         fraction = min(max(float(fraction), 0.0), 1.0)
         eta = (now - start) * (1 - fraction) / fraction if fraction > 0 else None
         if self.as_json:
@@ -206,6 +212,24 @@ def run(ns, reporter: Reporter) -> int:
                    + (f", midpoint RMSE {lf['midpoint']['rmse']:.4f}" if "midpoint" in lf else "")
                    + f"; stopped: {', '.join(f'{k} {v}' for k, v in result.stopped_because.items())}")
         reporter.event("stage", stage="train", seconds=round(result.seconds, 3), summary=summary, warnings=[])
+    if "apply" in ns.stages:
+        import bpy
+
+        from blender_addon.apply import apply_stage
+
+        if ns.in_place and not ns.blend:
+            raise BakeInputError("--in-place needs --blend FILE (the file to overwrite)")
+        tick = time.perf_counter()
+        info = apply_stage(scene, plan, out, pack_images=not ns.external_images,
+                           progress=lambda f, m: reporter.progress("apply", f, m))
+        target = ns.blend.expanduser().resolve() if ns.in_place else out / "baked.blend"
+        from blender_addon.scene_analysis import active_scene
+
+        with active_scene(scene):
+            bpy.ops.wm.save_as_mainfile(filepath=str(target), copy=not ns.in_place, compress=True)
+        reporter.event("stage", stage="apply", seconds=round(time.perf_counter() - tick, 3), warnings=[],
+                       summary=(f"{len(info['materials'])} materials baked ({info['nodes']} nodes in "
+                                f"'{info['node_group']}'); saved {target}"))
     reporter.event("done", message=f"bake directory {out} (report: {out / 'report.json'})", ok=True)
     return 0
 

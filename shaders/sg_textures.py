@@ -76,3 +76,15 @@ def bytes_per_texel(sg_count: int, amplitude_channels: int) -> int:
 
 def sg_texture_path(out_dir, kind: str) -> Path:
     return Path(out_dir) / SG_FILES[kind]
+
+
+def pack_tiles(layout, tiles: dict, atlas_shape) -> np.ndarray:
+    """The packed RGBA image (row 0 = top) of a node_group.SGTextureLayout: tiles[(name, j)] is (H, W, 4)."""
+    height, width = atlas_shape
+    columns, rows = layout.grid
+    image = np.zeros((rows * height, columns * width, 4), np.float32)
+    for key in layout.tiles:
+        col, row_from_bottom = layout.tile_offset(*key)
+        top = (rows - 1 - row_from_bottom) * height
+        image[top:top + height, col * width:(col + 1) * width] = tiles[key]
+    return image

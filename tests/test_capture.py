@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from mathutils import Matrix
 
-from blender_addon.capture import LIGHTMAP_LAYER, RECT_KEY, TEXEL_SCALE_KEY, capture, remove_lightmap_uvs
+from blender_addon.capture import LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, TEXEL_SCALE_KEY, capture, remove_lightmap_uvs
 from blender_addon.demo_scenes import build_demo_scene
 from blender_addon.scene_analysis import active_scene, build_plan
 from shaders.bake_plan import BakeInputError, BakeSettings
@@ -104,11 +104,11 @@ def test_room_report_pictures_and_the_users_mesh_data(room):
     uv = np.empty(len(floor.loops) * 2)
     floor.uv_layers[LIGHTMAP_LAYER].uv.foreach_get("vector", uv)
     assert uv.min() >= 0 and uv.max() <= 1
-    assert len(_named(scene, "Floor")[RECT_KEY]) == 4
+    assert len(_named(scene, "Floor")[OFFSET_KEY]) == 3 and len(_named(scene, "Floor")[SCALE_KEY]) == 3
     remove_lightmap_uvs(scene)
     for name, fingerprint in fingerprints.items():
         assert mesh_fingerprint(bpy.data.meshes[name]) == fingerprint, name
-    assert RECT_KEY not in _named(scene, "Floor")
+    assert OFFSET_KEY not in _named(scene, "Floor") and SCALE_KEY not in _named(scene, "Floor")
 
 
 def test_generated_lightmap_never_overlaps_itself():
@@ -139,7 +139,7 @@ def test_linked_duplicates_get_their_own_texels_and_keep_sharing_the_mesh(tmp_pa
     assert not np.any(a & b)
     p = channels(atlas, "P.X", 3)
     assert np.all(np.abs(p[b] - [3, 0, 0]).max(axis=1) <= 1.0 + 1e-5)
-    assert tuple(first[RECT_KEY]) != tuple(second[RECT_KEY])
+    assert tuple(first[OFFSET_KEY]) != tuple(second[OFFSET_KEY])
 
 
 def test_negative_scale_keeps_normals_outward(tmp_path):

@@ -1,0 +1,241 @@
+"""Apply stage: SG textures into one packed image, the "SG Lightfield" node group, and a non-destructive
+material write-back with an exact undo (Remove SG Bake).
+
+Non-destructive by construction: every baked material slot gets a copy of its material ("NAME (SG bake)")
+whose nodes are replaced by the baked shading; the user's original material is never edited, only kept
+alive with a fake user while a bake refers to it. `remove_bake` puts the originals back into the slots and
+deletes what the bake made (copies, node group, image, lightmap UV layers and tile properties).
+
+Diffuse comes from an irradiance tile computed from the rendered light fields by quadrature (exact up to
+the light-field resolution and one texture lookup), not from the SGs: the bake measures both and reports
+how far the SG irradiance is from it (report.json: apply.irradiance_from_sgs_rel_error).
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import bpy
+import numpy as np
+
+try:  # inside the installed extension the numpy side is a sibling package
+    from ..shaders.bake_plan import BakeInputError
+    from ..shaders.bake_report import update_report
+    from ..shaders.exr_io import write_exr
+    from ..shaders.lightfield_tiles import read_images
+    from ..shaders.node_group import GROUP_NAME, SGTextureLayout, build_node_group
+    from ..shaders.octahedral import pixel_directions, pixel_solid_angles
+    from ..shaders.sg_math import sg_irradiance
+    from ..shaders.sg_shading import encode_sharpness
+    from ..shaders.sg_textures import GUTTER_PASSES, pack_tiles, read_sg_texture, sg_texture_path
+    from ..shaders.texel_maps import channels, read_texel_maps
+    from ..shaders.texel_raster import dilate
+    from .capture import LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, remove_lightmap_uvs
+    from .scene_analysis import principled_surface
+except ImportError:  # bpy as a module with the repository on sys.path
+    from blender_addon.capture import LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, remove_lightmap_uvs
+    from blender_addon.scene_analysis import principled_surface
+    from shaders.bake_plan import BakeInputError
+    from shaders.bake_report import update_report
+    from shaders.exr_io import write_exr
+    from shaders.lightfield_tiles import read_images
+    from shaders.node_group import GROUP_NAME, SGTextureLayout, build_node_group
+    from shaders.octahedral import pixel_directions, pixel_solid_angles
+    from shaders.sg_math import sg_irradiance
+    from shaders.sg_shading import encode_sharpness
+    from shaders.sg_textures import GUTTER_PASSES, pack_tiles, read_sg_texture, sg_texture_path
+    from shaders.texel_maps import channels, read_texel_maps
+    from shaders.texel_raster import dilate
+
+BAKE_RECORD_KEY = "sglf_bake"  # on the scene: JSON {object: {slot index: original material}}
+COPY_SUFFIX = " (SG bake)"
+COPY_KEY = "sglf_original"  # on a baked copy: the original material's name
+FAKE_USER_KEY = "sglf_fake_user_set"  # on an original: we set its fake user (and clear it again)
+IMAGE_NAME = "SG Lightfield textures"
+PACKED_FILE = "sg_packed.exr"
+
+
+def irradiance_from_lightfields(images: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """E(n) = sum over pixels of L max(n.d, 0) solid angle: (T, C)."""
+    r = images.shape[1]
+    d = pixel_directions(r).reshape(-1, 3)
+    w = pixel_solid_angles(r).reshape(-1)
+    cosine = np.maximum(np.asarray(normals, np.float64) @ d.T, 0.0) * w  # (T, P)
+    return np.einsum("tp,tpc->tc", cosine, images.reshape(len(images), -1, images.shape[-1]).astype(np.float64))
+
+
+def _scatter(atlas_shape, texels, values):
+    grid = np.zeros(atlas_shape + values.shape[1:], np.float32)
+    grid[texels[:, 0], texels[:, 1]] = values
+    valid = np.zeros(atlas_shape, bool)
+    valid[texels[:, 0], texels[:, 1]] = True
+    filled, _ = dilate({"v": grid}, valid, GUTTER_PASSES)
+    return filled["v"]
+
+
+def build_packed_image(out_dir: Path, plan) -> tuple[SGTextureLayout, Path, dict]:
+    """Pack SG + irradiance tiles into DIR/sg_packed.exr (half RGBA); returns layout, path and measurements."""
+    atlas, _ = read_texel_maps(out_dir, plan.stage_hash("capture"))
+    shape = atlas.shape[:2]
+    axis, sharpness, amplitude, meta = read_sg_texture(sg_texture_path(out_dir, "lightfield"), plan.stage_hash("train"))
+    n = int(meta["sg_count"])
+    texels, images = read_images(out_dir / "lightfield", plan.stage_hash("render"))
+    shading = channels(atlas, "N.X", 3)[texels[:, 0], texels[:, 1]].astype(np.float64)
+    irradiance = irradiance_from_lightfields(images, shading)
+    r, c = texels[:, 0], texels[:, 1]
+    from_sgs = sg_irradiance(axis[r, c].astype(np.float64), sharpness[r, c].astype(np.float64),
+                             amplitude[r, c].astype(np.float64), shading[:, None, :]).sum(axis=1)
+    lit = irradiance.sum(axis=1) > 1e-6 * max(irradiance.sum(axis=1).max(), 1e-30)
+    rel = np.abs(from_sgs - irradiance).sum(axis=1)[lit] / irradiance.sum(axis=1)[lit]
+    layout = SGTextureLayout(n, has_irradiance=True)
+    tiles = {}
+    for j in range(n):
+        tiles[("sg", j)] = np.concatenate([axis[..., j, :], encode_sharpness(sharpness[..., j])[..., None]], -1)
+        tiles[("amp", j)] = np.concatenate([amplitude[..., j, :], np.zeros(shape + (1,))], -1)
+    tiles[("irradiance", 0)] = np.concatenate([_scatter(shape, texels, irradiance), np.ones(shape + (1,))], -1)
+    path = write_exr(out_dir / PACKED_FILE, pack_tiles(layout, tiles, shape), precision="half",
+                     channels=["R", "G", "B", "A"], metadata={"plan_hash": plan.stage_hash("train"),
+                                                              "layout": json.dumps(layout.to_dict())})
+    measured = {"irradiance_from_sgs_rel_error_mean": float(rel.mean()) if len(rel) else 0.0,
+                "irradiance_from_sgs_rel_error_p95": float(np.percentile(rel, 95)) if len(rel) else 0.0}
+    return layout, path, measured
+
+
+def _load_image(path: Path, pack: bool):
+    image = bpy.data.images.get(IMAGE_NAME)
+    if image is None:
+        image = bpy.data.images.load(str(path), check_existing=False)
+        image.name = IMAGE_NAME
+    else:
+        if image.packed_file is not None:
+            image.unpack(method="REMOVE")
+        image.filepath = str(path)
+        image.reload()
+    image.colorspace_settings.name = "Non-Color"
+    image.alpha_mode = "CHANNEL_PACKED"  # alpha holds encoded sharpness: never premultiply
+    if pack:
+        image.pack()
+    elif bpy.data.filepath:
+        try:
+            image.filepath = bpy.path.relpath(str(path))
+        except ValueError:  # another drive: keep the absolute path
+            pass
+    return image
+
+
+def _baked_material(original, group, surface: dict):
+    name = original.name + COPY_SUFFIX
+    material = bpy.data.materials.get(name)
+    if material is None or material.get(COPY_KEY) != original.name:
+        material = original.copy()
+        material.name = name
+        material[COPY_KEY] = original.name
+    material.use_fake_user = False
+    tree = material.node_tree
+    tree.nodes.clear()
+    uv = tree.nodes.new("ShaderNodeUVMap")
+    uv.uv_map = LIGHTMAP_LAYER
+    offset = tree.nodes.new("ShaderNodeAttribute")
+    offset.attribute_type, offset.attribute_name = "OBJECT", OFFSET_KEY
+    scale = tree.nodes.new("ShaderNodeAttribute")
+    scale.attribute_type, scale.attribute_name = "OBJECT", SCALE_KEY
+    atlas_uv = tree.nodes.new("ShaderNodeVectorMath")
+    atlas_uv.operation = "MULTIPLY_ADD"
+    tree.links.new(uv.outputs["UV"], atlas_uv.inputs[0])
+    tree.links.new(scale.outputs["Vector"], atlas_uv.inputs[1])
+    tree.links.new(offset.outputs["Vector"], atlas_uv.inputs[2])
+    geometry = tree.nodes.new("ShaderNodeNewGeometry")
+    node = tree.nodes.new("ShaderNodeGroup")
+    node.node_tree = group
+    tree.links.new(atlas_uv.outputs["Vector"], node.inputs["UV"])
+    tree.links.new(geometry.outputs["Normal"], node.inputs["Normal"])
+    node.inputs["Roughness"].default_value = surface["roughness"]
+    node.inputs["F0"].default_value = (*surface["f0"], 1.0)
+    albedo = [c * (1 - surface["metallic"]) for c in surface["base_color"]]
+    node.inputs["Albedo"].default_value = (*albedo, 1.0)
+    emission = tree.nodes.new("ShaderNodeEmission")
+    tree.links.new(node.outputs["Total"], emission.inputs["Color"])
+    output = tree.nodes.new("ShaderNodeOutputMaterial")
+    tree.links.new(emission.outputs[0], output.inputs["Surface"])
+    for i, n in enumerate((uv, scale, offset, atlas_uv, geometry, node, emission, output)):
+        n.location = (220 * i, 0)
+    return material
+
+
+def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None) -> dict:
+    """Write the bake into the scene's materials. Returns what was done (also merged into report.json)."""
+    start = time.perf_counter()
+    out_dir = Path(out_dir)
+    missing = [o.name for o in plan.baked_objects if scene.objects.get(o.name) is None]
+    if missing:
+        raise BakeInputError(f"objects {missing} of the plan are not in scene '{scene.name}'; make a new plan")
+    layout, path, measured = build_packed_image(out_dir, plan)
+    image = _load_image(path, pack_images)
+    group = build_node_group(image, layout)
+    record = json.loads(scene.get(BAKE_RECORD_KEY, "{}"))
+    baked_materials = set()
+    for object_plan in plan.baked_objects:
+        obj = scene.objects[object_plan.name]
+        if OFFSET_KEY not in obj:
+            raise BakeInputError(f"'{obj.name}': not captured (no lightmap tile); run the capture stage first")
+        glossy = {m.name for m in object_plan.materials if m.glossy}
+        slots = record.setdefault(obj.name, {})
+        for index, slot in enumerate(obj.material_slots):
+            current = slot.material
+            if current is None:
+                continue
+            original = bpy.data.materials.get(current.get(COPY_KEY, current.name))
+            if original is None or original.name not in glossy:
+                continue
+            if not original.use_fake_user:
+                original.use_fake_user = True
+                original[FAKE_USER_KEY] = True
+            copy = _baked_material(original, group, principled_surface(original))
+            slot.material = copy
+            slots[str(index)] = original.name
+            baked_materials.add(copy.name)
+    scene[BAKE_RECORD_KEY] = json.dumps(record)
+    seconds = time.perf_counter() - start
+    info = {"materials": sorted(baked_materials), "node_group": group.name, "nodes": len(group.nodes),
+            "image": image.name, "image_packed": bool(image.packed_file), "layout": layout.to_dict(), **measured}
+    update_report(out_dir, plan.stage_hash("capture"), timings_s={"apply": seconds}, apply=info)
+    if progress is not None:
+        progress(1.0, f"{len(baked_materials)} materials baked")
+    return info
+
+
+def remove_bake(scene) -> int:
+    """Restore the original materials of every slot the bake changed and delete what the bake made.
+    Returns the number of slots restored."""
+    record = json.loads(scene.get(BAKE_RECORD_KEY, "{}"))
+    restored = 0
+    originals = set()
+    for object_name, slots in record.items():
+        obj = scene.objects.get(object_name)
+        for index, original_name in slots.items():
+            original = bpy.data.materials.get(original_name)
+            originals.add(original_name)
+            if obj is None or original is None or int(index) >= len(obj.material_slots):
+                continue
+            obj.material_slots[int(index)].material = original
+            restored += 1
+    for material in [m for m in bpy.data.materials if COPY_KEY in m and m.users == 0]:
+        bpy.data.materials.remove(material)
+    for name in originals:
+        original = bpy.data.materials.get(name)
+        if original is not None and original.get(FAKE_USER_KEY):
+            original.use_fake_user = False
+            del original[FAKE_USER_KEY]
+    if BAKE_RECORD_KEY in scene:
+        del scene[BAKE_RECORD_KEY]
+    still_baked = any(BAKE_RECORD_KEY in s for s in bpy.data.scenes)
+    if not still_baked:
+        group = bpy.data.node_groups.get(GROUP_NAME)
+        if group is not None and group.users == 0:
+            bpy.data.node_groups.remove(group)
+        image = bpy.data.images.get(IMAGE_NAME)
+        if image is not None and image.users == 0:
+            bpy.data.images.remove(image)
+    remove_lightmap_uvs(scene)
+    return restored

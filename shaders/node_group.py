@@ -1,0 +1,208 @@
+"""Builder of the "SG Lightfield" shader node group (bpy is imported only when building).
+
+The group evaluates shaders/sg_shading.py with every operation turned into one Blender shader node that
+EEVEE and Cycles both support (Math, Vector Math, Clamp, Image Texture, Geometry; no OSL), so the numpy
+reference (`shade(NumpyOps(), ...)`) is the group's exact formula.
+
+Texture layout (one RGBA half-float image, `SGTextureLayout`): the lightmap atlas repeated as tiles in a
+grid; tile 'sg' j = (axis xyz, log-encoded sharpness), 'amp' j = (rgb amplitude, 0), 'irradiance' = (rgb, 1), 'iwev' j
+and 'iwev_amp' j likewise. Lookups sample tile t at (uv + tile offset) / grid with linear filtering; the
+atlas keeps a dilated border, so a lookup never bleeds into the next tile.
+
+Versioned and idempotent: a group with the same name and version is updated in place (its users keep it);
+`GROUP_VERSION` changes whenever the formula or the interface changes.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+try:
+    from .sg_shading import shade
+except ImportError:
+    from shaders.sg_shading import shade
+
+GROUP_NAME = "SG Lightfield"
+GROUP_VERSION = 1
+VERSION_KEY = "sglf_version"
+COLUMN_NODES = 40  # nodes per column in the automatic layout
+
+
+@dataclass
+class SGTextureLayout:
+    sg_count: int
+    iwev_count: int = 0
+    has_irradiance: bool = True
+    tiles: list = field(default_factory=list)  # [(name, j)] in tile order
+
+    def __post_init__(self):
+        if not self.tiles:
+            self.tiles = [(kind, j) for j in range(self.sg_count) for kind in ("sg", "amp")]
+            if self.has_irradiance:
+                self.tiles.append(("irradiance", 0))
+            self.tiles += [(kind, j) for j in range(self.iwev_count) for kind in ("iwev", "iwev_amp")]
+
+    @property
+    def grid(self) -> tuple[int, int]:
+        columns = max(1, math.ceil(math.sqrt(len(self.tiles))))
+        return columns, max(1, math.ceil(len(self.tiles) / columns))
+
+    def tile_offset(self, name: str, j: int) -> tuple[int, int]:
+        """(column, row from the bottom) of a tile, in tile units."""
+        index = self.tiles.index((name, j))
+        columns, rows = self.grid
+        return index % columns, rows - 1 - index // columns
+
+    def to_dict(self):
+        return {"sg_count": self.sg_count, "iwev_count": self.iwev_count, "has_irradiance": self.has_irradiance,
+                "tiles": [list(t) for t in self.tiles]}
+
+
+class NodeOps:
+    """sg_shading operations as shader nodes. Constants stay Python numbers until an input needs them."""
+
+    def __init__(self, tree):
+        self.tree = tree
+        self.count = 0
+
+    def _node(self, kind, **props):
+        node = self.tree.nodes.new(kind)
+        for key, value in props.items():
+            setattr(node, key, value)
+        node.location = (200 * (self.count // COLUMN_NODES), -120 * (self.count % COLUMN_NODES))
+        node.hide = True
+        self.count += 1
+        return node
+
+    def _feed(self, socket, value):
+        if hasattr(value, "links") or hasattr(value, "is_linked"):
+            self.tree.links.new(value, socket)
+        else:
+            socket.default_value = value
+
+    def _math(self, operation, *values):
+        node = self._node("ShaderNodeMath", operation=operation)
+        for socket, value in zip(node.inputs, values):
+            self._feed(socket, value)
+        return node.outputs[0]
+
+    def _vmath(self, operation, *values, output=0, scale=None):
+        node = self._node("ShaderNodeVectorMath", operation=operation)
+        for socket, value in zip(node.inputs, values):
+            self._feed(socket, value)
+        if scale is not None:
+            self._feed(node.inputs["Scale"], scale)
+        return node.outputs[output]
+
+    def const(self, value):
+        return float(value)
+
+    def vconst(self, value):
+        return tuple(float(v) for v in value)
+
+    def add(self, a, b):
+        return self._math("ADD", a, b)
+
+    def sub(self, a, b):
+        return self._math("SUBTRACT", a, b)
+
+    def mul(self, a, b):
+        return self._math("MULTIPLY", a, b)
+
+    def div(self, a, b):
+        return self._math("DIVIDE", a, b)
+
+    def maximum(self, a, b):
+        return self._math("MAXIMUM", a, b)
+
+    def minimum(self, a, b):
+        return self._math("MINIMUM", a, b)
+
+    def clamp(self, a, lo, hi):
+        node = self._node("ShaderNodeClamp", clamp_type="MINMAX")
+        self._feed(node.inputs["Value"], a)
+        self._feed(node.inputs["Min"], float(lo))
+        self._feed(node.inputs["Max"], float(hi))
+        return node.outputs[0]
+
+    def exp(self, a):
+        return self._math("EXPONENT", a)
+
+    def sqrt(self, a):
+        return self._math("SQRT", a)
+
+    def power(self, a, exponent):
+        return self._math("POWER", a, float(exponent))
+
+    def dot(self, a, b):
+        return self._vmath("DOT_PRODUCT", a, b, output="Value")
+
+    def cross(self, a, b):
+        return self._vmath("CROSS_PRODUCT", a, b)
+
+    def normalize(self, a):
+        return self._vmath("NORMALIZE", a)
+
+    def vadd(self, a, b):
+        return self._vmath("ADD", a, b)
+
+    def vsub(self, a, b):
+        return self._vmath("SUBTRACT", a, b)
+
+    def vmul(self, a, b):
+        return self._vmath("MULTIPLY", a, b)
+
+    def vscale(self, a, s):
+        return self._vmath("SCALE", a, scale=s)
+
+    def vmax(self, a, b):
+        return self._vmath("MAXIMUM", a, b)
+
+    def vmin(self, a, b):
+        return self._vmath("MINIMUM", a, b)
+
+
+def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GROUP_NAME):
+    """Create or update the node group; returns it. `image` is the packed SG image (Non-Color, half float)."""
+    import bpy
+
+    group = bpy.data.node_groups.get(name)
+    if group is None or group.bl_idname != "ShaderNodeTree":
+        group = bpy.data.node_groups.new(name, "ShaderNodeTree")
+    group.nodes.clear()
+    group.interface.clear()
+    sockets = [("UV", "INPUT", "NodeSocketVector"), ("Normal", "INPUT", "NodeSocketVector"),
+               ("Roughness", "INPUT", "NodeSocketFloat"), ("F0", "INPUT", "NodeSocketColor"),
+               ("Albedo", "INPUT", "NodeSocketColor"), ("Total", "OUTPUT", "NodeSocketColor"),
+               ("Glossy", "OUTPUT", "NodeSocketColor"), ("Diffuse", "OUTPUT", "NodeSocketColor"),
+               ("Environment", "OUTPUT", "NodeSocketColor")]
+    for socket_name, in_out, socket_type in sockets:
+        group.interface.new_socket(socket_name, in_out=in_out, socket_type=socket_type)
+    ops = NodeOps(group)
+    inputs = ops._node("NodeGroupInput")
+    geometry = ops._node("ShaderNodeNewGeometry")
+    columns, rows = layout.grid
+    cache = {}
+
+    def lookup(kind, j):
+        if (kind, j) not in cache:
+            col, row = layout.tile_offset(kind, j)
+            shifted = ops._vmath("ADD", inputs.outputs["UV"], (float(col), float(row), 0.0))
+            uv = ops._vmath("MULTIPLY", shifted, (1.0 / columns, 1.0 / rows, 1.0))
+            texture = ops._node("ShaderNodeTexImage", image=image, interpolation="Linear", extension="EXTEND")
+            group.links.new(uv, texture.inputs["Vector"])
+            cache[(kind, j)] = (texture.outputs["Color"], texture.outputs["Alpha"])
+        return cache[(kind, j)]
+
+    result = shade(ops, lookup, inputs.outputs["Normal"], geometry.outputs["Incoming"], inputs.outputs["Roughness"],
+                   inputs.outputs["F0"], inputs.outputs["Albedo"], layout.sg_count, layout.iwev_count,
+                   [tuple(e) for e in env_sgs], layout.has_irradiance)
+    outputs = ops._node("NodeGroupOutput")
+    outputs.location = (200 * (ops.count // COLUMN_NODES + 1), 0)
+    for key, socket_name in (("total", "Total"), ("glossy", "Glossy"), ("diffuse", "Diffuse"),
+                             ("environment", "Environment")):
+        ops._feed(outputs.inputs[socket_name], result[key] if not isinstance(result[key], tuple)
+                  else (*result[key], 1.0))
+    group[VERSION_KEY] = GROUP_VERSION
+    group["sglf_layout"] = str(layout.to_dict())
+    return group

@@ -1,0 +1,161 @@
+"""Apply stage: the node group against its numpy reference in Cycles, write-back, Remove SG Bake, re-bake."""
+import json
+
+import bpy  # noqa: I001
+import bmesh
+import numpy as np
+import pytest
+
+from blender_addon.apply import BAKE_RECORD_KEY, IMAGE_NAME, apply_stage, remove_bake
+from blender_addon.capture import capture
+from blender_addon.render import quiet_stdout, render_stage
+from blender_addon.scene_analysis import active_scene, build_plan
+from shaders.bake_plan import BakeSettings
+from shaders.exr_io import read_exr, write_exr
+from shaders.node_group import GROUP_NAME, SGTextureLayout, build_node_group
+from shaders.sg_shading import NumpyOps, encode_sharpness, shade
+from shaders.sg_textures import pack_tiles
+from tests.scene_helpers import material, mesh_fingerprint, mesh_object, scene_with, uv_sphere
+
+pytestmark = pytest.mark.slow
+
+
+def _parity_scene(group, width, height):
+    scene = bpy.data.scenes.new("parity")
+    scene.render.engine = "CYCLES"
+    scene.cycles.samples, scene.cycles.use_denoising = 1, False
+    scene.cycles.pixel_filter_type, scene.cycles.filter_width = "BOX", 0.01  # one sample at each pixel centre
+    scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = width, height, 100
+    scene.render.image_settings.file_format, scene.render.image_settings.color_depth = "OPEN_EXR", "32"
+    mesh = bpy.data.meshes.new("parity")
+    bm = bmesh.new()
+    bm.loops.layers.uv.new("UVMap")
+    bmesh.ops.create_grid(bm, x_segments=1, y_segments=1, size=1.0, calc_uvs=True)
+    bm.to_mesh(mesh)
+    mat = bpy.data.materials.new("parity")
+    tree = mat.node_tree
+    tree.nodes.remove(tree.nodes["Principled BSDF"])
+    node = tree.nodes.new("ShaderNodeGroup")
+    node.node_tree = group
+    tree.links.new(tree.nodes.new("ShaderNodeUVMap").outputs[0], node.inputs["UV"])
+    emission = tree.nodes.new("ShaderNodeEmission")
+    tree.links.new(node.outputs["Total"], emission.inputs["Color"])
+    tree.links.new(emission.outputs[0], tree.nodes["Material Output"].inputs["Surface"])
+    mesh.materials.append(mat)
+    scene.collection.objects.link(bpy.data.objects.new("parity", mesh))
+    camera = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
+    camera.data.type, camera.data.ortho_scale = "ORTHO", 2.0
+    camera.location = (0, 0, 5)
+    scene.collection.objects.link(camera)
+    scene.camera = camera
+    scene.world = bpy.data.worlds.new("black")
+    return scene, node
+
+
+def test_node_group_matches_its_numpy_reference_in_cycles(tmp_path):
+    """Texel-centre lookups (closest filtering isolates the formula from texture filtering) over a grid that
+    includes the extremes: sharpness 1e-4..1e4, amplitudes 0..1e4, roughness 0 (floored) to 1, grazing n.v."""
+    n, h, w = 3, 6, 6
+    rng = np.random.default_rng(0)
+    layout = SGTextureLayout(n, has_irradiance=True)
+    tiles = {}
+    for j in range(n):
+        sharpness = np.exp(rng.uniform(np.log(1e-4), np.log(1e4), (h, w)))
+        sharpness[0, 0], sharpness[0, 1] = 1e-4, 1e4
+        tiles[("sg", j)] = np.concatenate([rng.normal(size=(h, w, 3)), encode_sharpness(sharpness)[..., None]], -1)
+        amplitude = rng.uniform(0, 20, (h, w, 3))
+        amplitude[1, 0], amplitude[1, 1] = 0.0, 1e4
+        tiles[("amp", j)] = np.concatenate([amplitude, np.zeros((h, w, 1))], -1)
+    tiles[("irradiance", 0)] = np.concatenate([rng.uniform(0, 3, (h, w, 3)), np.ones((h, w, 1))], -1)
+    path = write_exr(tmp_path / "packed.exr", pack_tiles(layout, tiles, (h, w)), precision="half",
+                     channels=["R", "G", "B", "A"])
+    stored, _, _ = read_exr(path, channels=["R", "G", "B", "A"])
+    image = bpy.data.images.load(str(path))
+    image.colorspace_settings.name, image.alpha_mode = "Non-Color", "CHANNEL_PACKED"
+    group = build_node_group(image, layout, name="SG Lightfield parity")
+    for node in group.nodes:
+        if node.type == "TEX_IMAGE":
+            node.interpolation = "Closest"
+    scene, node = _parity_scene(group, w, h)
+    columns, rows = layout.grid
+
+    def lookup(kind, j):
+        col, row_from_bottom = layout.tile_offset(kind, j)
+        top = (rows - 1 - row_from_bottom) * h
+        texel = stored[top:top + h, col * w:(col + 1) * w].astype(np.float64)
+        return texel[..., :3], texel[..., 3]
+
+    worst = 0.0
+    for roughness in (0.0, 0.2, 0.6, 1.0):
+        for theta in (0.0, 60.0, 89.0):
+            normal = (np.sin(np.radians(theta)), 0.0, np.cos(np.radians(theta)))
+            node.inputs["Normal"].default_value = normal
+            node.inputs["Roughness"].default_value = roughness
+            node.inputs["F0"].default_value = (0.04, 0.5, 1.0, 1.0)
+            node.inputs["Albedo"].default_value = (0.8, 0.5, 0.2, 1.0)
+            scene.render.filepath = str(tmp_path / "parity.exr")
+            with active_scene(scene), quiet_stdout():
+                bpy.ops.render.render(write_still=True, scene=scene.name)
+            rendered, _, _ = read_exr(tmp_path / "parity.exr", channels=["R", "G", "B"])
+            reference = shade(NumpyOps(), lookup, np.broadcast_to(normal, (h, w, 3)),
+                              np.broadcast_to((0.0, 0.0, 1.0), (h, w, 3)), np.full((h, w), roughness),
+                              np.broadcast_to((0.04, 0.5, 1.0), (h, w, 3)), np.broadcast_to((0.8, 0.5, 0.2), (h, w, 3)),
+                              n)["total"]
+            worst = max(worst, float((np.abs(rendered - reference) / np.maximum(np.abs(reference), 1e-6)).max()))
+    assert worst < 1e-3
+
+
+def _material_fingerprint(mat):
+    tree = mat.node_tree
+    nodes = sorted((n.name, n.bl_idname, tuple((i.name, str(getattr(i, "default_value", None)) if not hasattr(
+        getattr(i, "default_value", None), "__len__") else tuple(i.default_value)) for i in n.inputs))
+                   for n in tree.nodes)
+    links = sorted((l.from_node.name, l.from_socket.identifier, l.to_node.name, l.to_socket.identifier)
+                   for l in tree.links)
+    return json.dumps([mat.name, nodes, links], default=str)
+
+
+def test_write_back_remove_restores_everything_and_rebake_does_not_pile_up(tmp_path):
+    glossy = material("Glossy", 0.2, metallic=1.0)
+    rough = material("Rough", 0.9)
+    ball = mesh_object("Ball", uv_sphere(0.8, 16, 8), glossy)
+    twin = mesh_object("Twin", None, mesh=ball.data)  # a linked duplicate
+    twin.location = (2.0, 0.0, 0.0)
+    floor = mesh_object("Floor", lambda bm: bmesh.ops.create_grid(bm, x_segments=1, y_segments=1, size=3.0), rough)
+    floor.location = (0, 0, -0.8)
+    lamp = bpy.data.objects.new("Lamp", bpy.data.lights.new("Lamp", "POINT"))
+    lamp.location = (1, -2, 3)
+    scene = scene_with(ball, twin, floor, lamp)
+    before = {m.name: _material_fingerprint(m) for m in (glossy, rough)}
+    meshes_before = {m.name: mesh_fingerprint(m) for m in (ball.data, floor.data)}
+    plan = build_plan(scene, BakeSettings.from_preset("draft", lightfield_resolution=8, samples=4, sg_count=2,
+                                                      training_budget_s=1.0))
+    capture(scene, plan, tmp_path)
+    render_stage(scene, plan, tmp_path)
+    from training.train_stage import train_stage
+
+    train_stage(tmp_path, plan)
+    counts = []
+    for _ in range(2):
+        info = apply_stage(scene, plan, tmp_path)
+        counts.append((len(bpy.data.images), len(bpy.data.node_groups), len(bpy.data.materials)))
+    assert counts[0] == counts[1]  # a second bake replaces, never piles up
+    assert info["materials"] == ["Glossy (SG bake)"] and ball.material_slots[0].material.name == "Glossy (SG bake)"
+    assert floor.material_slots[0].material == rough  # rough: not baked
+    assert bpy.data.images[IMAGE_NAME].packed_file is not None
+    assert _material_fingerprint(glossy) == before["Glossy"]  # the original is never edited
+    with active_scene(scene), quiet_stdout():  # the baked scene renders in Cycles
+        scene.render.resolution_x = scene.render.resolution_y = 32
+        scene.render.filepath = str(tmp_path / "baked.png")
+        scene.camera = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
+        scene.collection.objects.link(scene.camera)
+        scene.camera.location = (1, -6, 0.5)
+        scene.camera.rotation_euler = (1.5, 0, 0)
+        bpy.ops.render.render(write_still=True, scene=scene.name)
+    assert remove_bake(scene) == 2  # the slot of each instance (they share the mesh and its slot)
+    assert ball.material_slots[0].material == glossy and twin.material_slots[0].material == glossy
+    assert {m.name: _material_fingerprint(m) for m in (glossy, rough)} == before
+    assert {m.name: mesh_fingerprint(m) for m in (ball.data, floor.data)} == meshes_before
+    assert not glossy.use_fake_user and "Glossy (SG bake)" not in bpy.data.materials
+    assert GROUP_NAME not in bpy.data.node_groups and IMAGE_NAME not in bpy.data.images
+    assert BAKE_RECORD_KEY not in scene
