@@ -1,11 +1,55 @@
-"""Operators: Bake SG Lightfield, Remove SG Bake."""
+"""Operators: Bake SG Lightfield (modal, cancellable), Cancel, Remove SG Bake, Show Plan, Open Report."""
 from __future__ import annotations
+
+import os
+import time
 
 import bpy
 
+try:  # inside the installed extension the numpy side is a sibling package
+    from ..shaders.bake_plan import PRESETS, BakeCancelled, BakeInputError, BakeSettings
+    from . import apply as apply_module
+    from .pipeline import BakeJob
+    from .scene_analysis import build_plan
+except ImportError:  # bpy as a module with the repository on sys.path
+    from blender_addon import apply as apply_module
+    from blender_addon.pipeline import BakeJob
+    from blender_addon.scene_analysis import build_plan
+    from shaders.bake_plan import PRESETS, BakeCancelled, BakeInputError, BakeSettings
+
+_jobs = {}  # scene name -> running BakeJob (one bake per scene)
+_cancel_requested = set()
+
+
+def settings_from_panel(panel) -> BakeSettings:
+    """The panel's knobs as BakeSettings: a named preset, or Custom with every knob as set."""
+    device = panel.device.lower()
+    if panel.preset != "CUSTOM":
+        return BakeSettings.from_preset(panel.preset.lower(), device=device)
+    return BakeSettings.from_preset("draft", texel_density=panel.texel_density,
+                                    lightfield_resolution=panel.lightfield_resolution, samples=panel.samples,
+                                    sg_count=0 if panel.sg_count_auto else panel.sg_count,
+                                    training_budget_s=panel.training_budget_s, device=device)
+
+
+def bake_directory(panel) -> str:
+    path = panel.output_dir.strip()
+    if not path:
+        raise BakeInputError("set a bake directory")
+    if path.startswith("//") and not bpy.data.filepath:
+        raise BakeInputError("save the .blend first, or choose an absolute bake directory (it is relative: "
+                             f"{path})")
+    return os.path.normpath(bpy.path.abspath(path))
+
+
+def torch_python_preference(context) -> str:
+    root = __package__.rsplit(".", 1)[0] if __package__ and "." in __package__ else ""
+    addon = context.preferences.addons.get(root) if root else None
+    return getattr(addon.preferences, "torch_python", "") if addon is not None else ""
+
 
 class SGLF_OT_bake(bpy.types.Operator):
-    """Bake the scene's glossy light field into spherical-Gaussian textures"""
+    """Bake the scene's glossy light field into spherical-Gaussian textures (Esc cancels)"""
 
     bl_idname = "sg_lightfield.bake"
     bl_label = "Bake SG Lightfield"
@@ -13,28 +57,171 @@ class SGLF_OT_bake(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return context.scene is not None and not context.scene.sg_lightfield.is_baking
+        return context.scene is not None and context.scene.name not in _jobs
+
+    def _start(self, context):
+        panel = context.scene.sg_lightfield
+        job = BakeJob(context.scene, settings_from_panel(panel), bake_directory(panel),
+                      stages=("capture", "render", "train", "apply"),
+                      torch_python=torch_python_preference(context))
+        _jobs[context.scene.name] = job
+        _cancel_requested.discard(context.scene.name)
+        panel.is_baking, panel.progress, panel.status = True, 0.0, job.plan.summary()
+        return job
+
+    def _finish(self, context, job, message, level="INFO"):
+        panel = context.scene.sg_lightfield
+        panel.is_baking = False
+        panel.status = message
+        _jobs.pop(context.scene.name, None)
+        _cancel_requested.discard(context.scene.name)
+        self.report({level}, f"SG Lightfield: {message}")
 
     def execute(self, context):
-        # The pipeline stages (capture, render, train, apply) land in later issues; until then the
-        # operator says so instead of pretending to bake.
-        self.report({"WARNING"}, "SG Lightfield: the bake pipeline is not available in this build yet")
-        return {"CANCELLED"}
+        """Blocking bake (scripts, bpy as a module): the same job the modal operator steps through."""
+        try:
+            job = self._start(context)
+            job.run()
+        except (BakeInputError, BakeCancelled, OSError) as exc:
+            self._finish(context, None, str(exc), "ERROR")
+            return {"CANCELLED"}
+        self._finish(context, job, f"baked into {job.out_dir}")
+        return {"FINISHED"}
+
+    def invoke(self, context, event):
+        try:
+            self._start(context)
+        except (BakeInputError, OSError) as exc:
+            self._finish(context, None, str(exc), "ERROR")
+            return {"CANCELLED"}
+        self._started = time.monotonic()
+        self._timer = context.window_manager.event_timer_add(0.05, window=context.window)
+        context.window_manager.modal_handler_add(self)
+        context.window_manager.progress_begin(0, 100)
+        return {"RUNNING_MODAL"}
+
+    def _stop_ui(self, context):
+        context.window_manager.event_timer_remove(self._timer)
+        context.window_manager.progress_end()
+        if context.workspace is not None:
+            context.workspace.status_text_set(None)
+        for area in context.screen.areas if context.screen else ():
+            area.tag_redraw()
+
+    def modal(self, context, event):
+        job = _jobs.get(context.scene.name)
+        if job is None:
+            self._stop_ui(context)
+            return {"CANCELLED"}
+        if event.type == "ESC" or context.scene.name in _cancel_requested:
+            job.cancel()
+            self._stop_ui(context)
+            self._finish(context, job, "cancelled; the scene is as it was, finished stages are kept", "WARNING")
+            return {"CANCELLED"}
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}
+        try:
+            update = job.step()
+        except (BakeInputError, BakeCancelled, OSError) as exc:
+            job.cancel()
+            self._stop_ui(context)
+            self._finish(context, job, str(exc), "ERROR")
+            return {"CANCELLED"}
+        if update is None:
+            self._stop_ui(context)
+            self._finish(context, job, f"baked into {job.out_dir}")
+            return {"FINISHED"}
+        stage, fraction, message = update
+        elapsed = time.monotonic() - self._started
+        eta = elapsed * (1 - fraction) / fraction if fraction > 0.01 else None
+        panel = context.scene.sg_lightfield
+        panel.progress = fraction
+        panel.status = f"{stage}: {message}" + (f" (ETA {eta:.0f} s)" if eta is not None else "")
+        context.window_manager.progress_update(int(100 * fraction))
+        if context.workspace is not None:
+            context.workspace.status_text_set(f"SG Lightfield {100 * fraction:.0f}%: {panel.status}  (Esc cancels)")
+        for area in context.screen.areas if context.screen else ():
+            if area.type in ("PROPERTIES", "VIEW_3D"):
+                area.tag_redraw()
+        return {"RUNNING_MODAL"}
+
+
+class SGLF_OT_cancel(bpy.types.Operator):
+    """Stop the running bake; the scene stays as it was and finished stages are reused next time"""
+
+    bl_idname = "sg_lightfield.cancel"
+    bl_label = "Cancel"
+
+    @classmethod
+    def poll(cls, context):
+        return context.scene is not None and context.scene.name in _jobs
+
+    def execute(self, context):
+        _cancel_requested.add(context.scene.name)
+        return {"FINISHED"}
 
 
 class SGLF_OT_remove_bake(bpy.types.Operator):
-    """Restore every material changed by an SG bake to its original node tree"""
+    """Restore every material changed by an SG bake to its original and remove the bake's data"""
 
     bl_idname = "sg_lightfield.remove_bake"
     bl_label = "Remove SG Bake"
     bl_options = {"REGISTER", "UNDO"}
 
+    @classmethod
+    def poll(cls, context):
+        return context.scene is not None and context.scene.name not in _jobs
+
     def execute(self, context):
-        self.report({"INFO"}, "SG Lightfield: no baked materials to restore")
+        restored = apply_module.remove_bake(context.scene)
+        self.report({"INFO"}, f"SG Lightfield: {restored} material slot(s) restored" if restored
+                    else "SG Lightfield: no baked materials to restore")
         return {"FINISHED"}
 
 
-_classes = (SGLF_OT_bake, SGLF_OT_remove_bake)
+class SGLF_OT_show_plan(bpy.types.Operator):
+    """Analyse the scene and show what the bake would model, and why"""
+
+    bl_idname = "sg_lightfield.show_plan"
+    bl_label = "Show Plan"
+
+    def execute(self, context):
+        panel = context.scene.sg_lightfield
+        try:
+            plan = build_plan(context.scene, settings_from_panel(panel))
+        except BakeInputError as exc:
+            panel.plan_text = f"! {exc}"
+            self.report({"ERROR"}, f"SG Lightfield: {exc}")
+            return {"CANCELLED"}
+        lines = [plan.summary()]
+        lines += [f"{o.name}: {'bake' if o.bake_lightfield else 'skip'} ({o.reason})" for o in plan.objects]
+        lines += [f"environment: {plan.environment.reason}"] + [f"! {w}" for w in plan.warnings]
+        panel.plan_text = "\n".join(lines)
+        return {"FINISHED"}
+
+
+class SGLF_OT_open_report(bpy.types.Operator):
+    """Open the bake's report in the web browser or file viewer"""
+
+    bl_idname = "sg_lightfield.open_report"
+    bl_label = "Open Report"
+
+    def execute(self, context):
+        try:
+            directory = bake_directory(context.scene.sg_lightfield)
+        except BakeInputError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        for name in ("report.html", "report.json"):
+            path = os.path.join(directory, name)
+            if os.path.isfile(path):
+                bpy.ops.wm.path_open(filepath=path)
+                return {"FINISHED"}
+        self.report({"WARNING"}, f"SG Lightfield: no report in {directory} yet; bake first")
+        return {"CANCELLED"}
+
+
+_classes = (SGLF_OT_bake, SGLF_OT_cancel, SGLF_OT_remove_bake, SGLF_OT_show_plan, SGLF_OT_open_report)
 
 
 def register():

@@ -39,6 +39,24 @@ class SGLightfieldSettings(bpy.types.PropertyGroup):
     is_baking: BoolProperty(default=False, options={"SKIP_SAVE"})
     progress: FloatProperty(default=0.0, min=0.0, max=1.0, subtype="FACTOR", options={"SKIP_SAVE"})
     status: StringProperty(default="", options={"SKIP_SAVE"})
+    plan_text: StringProperty(default="", options={"SKIP_SAVE"})
+
+
+def _root_package():
+    """The extension's package (e.g. bl_ext.user_default.sg_lightfield); '' when imported as plain modules."""
+    return __package__.rsplit(".", 1)[0] if __package__ and "." in __package__ else ""
+
+
+class SGLightfieldPreferences(bpy.types.AddonPreferences):
+    bl_idname = _root_package() or "sg_lightfield"
+    torch_python: StringProperty(
+        name="Python with torch", subtype="FILE_PATH", default="",
+        description="A Python 3.11 executable with torch 2.13 for training (Blender's own Python has no torch); "
+                    "empty: found automatically")
+
+    def draw(self, context):
+        self.layout.prop(self, "torch_python")
+        self.layout.label(text="Training runs in this Python as a separate process; rendering stays in Blender.")
 
 
 _classes = (SGLightfieldSettings,)
@@ -47,10 +65,14 @@ _classes = (SGLightfieldSettings,)
 def register():
     for cls in _classes:
         bpy.utils.register_class(cls)
+    if _root_package():
+        bpy.utils.register_class(SGLightfieldPreferences)
     bpy.types.Scene.sg_lightfield = PointerProperty(type=SGLightfieldSettings)
 
 
 def unregister():
     del bpy.types.Scene.sg_lightfield
+    if _root_package():
+        bpy.utils.unregister_class(SGLightfieldPreferences)
     for cls in reversed(_classes):
         bpy.utils.unregister_class(cls)

@@ -34,7 +34,7 @@ import bpy
 import numpy as np
 
 try:  # inside the installed extension the numpy side is a sibling package
-    from ..shaders.bake_plan import BakeCancelled, BakeInputError
+    from ..shaders.bake_plan import BakeInputError, drive
     from ..shaders.bake_report import save_png, update_report
     from ..shaders.env_visibility import env_visibility
     from ..shaders.exr_io import read_exr, write_exr
@@ -45,7 +45,7 @@ try:  # inside the installed extension the numpy side is a sibling package
     from .scene_analysis import active_scene
 except ImportError:  # bpy as a module with the repository on sys.path
     from blender_addon.scene_analysis import active_scene
-    from shaders.bake_plan import BakeCancelled, BakeInputError
+    from shaders.bake_plan import BakeInputError, drive
     from shaders.bake_report import save_png, update_report
     from shaders.env_visibility import env_visibility
     from shaders.exr_io import read_exr, write_exr
@@ -350,10 +350,16 @@ def _mono(images):
     return (images @ LUMINANCE)[..., None]
 
 
-def render_stage(scene, plan, out_dir, *, share: str | None = None, midpoints: int = 0,
-                 max_tile_megapixels: float = DEFAULT_TILE_MEGAPIXELS, progress=_noop_progress,
-                 should_cancel=lambda: False) -> RenderResult:
+def render_stage(scene, plan, out_dir, *, progress=_noop_progress, should_cancel=lambda: False,
+                 **options) -> RenderResult:
     """Render every pass the plan needs into `out_dir`; finished tiles are kept and skipped."""
+    return drive(render_steps(scene, plan, out_dir, **options), progress, should_cancel, "render cancelled")
+
+
+def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: int = 0,
+                 max_tile_megapixels: float = DEFAULT_TILE_MEGAPIXELS):
+    """The render stage as a generator: yields (fraction, message) after every tile, returns RenderResult.
+    Closing it early (cancel) removes the temporary render scene; finished tiles stay on disk."""
     start = time.perf_counter()
     out_dir = Path(out_dir)
     plan_hash = plan.stage_hash("render")
@@ -389,16 +395,13 @@ def render_stage(scene, plan, out_dir, *, share: str | None = None, midpoints: i
     total_pixels = sum(len(t.texels) for _, _, _, t, _ in work) or 1
     finished_pixels, render_seconds, rays = 0, 0.0, 0
     if not work:
-        progress(1.0, "all tiles already rendered")
+        yield 1.0, "all tiles already rendered"
     else:
         with tempfile.TemporaryDirectory(prefix=".sglf-render-", dir=out_dir) as tmp, \
                 _RenderScene(scene, plan, Path(tmp), _texel_inputs(atlas, texels)[0]) as renderer:
             result.warnings.extend(renderer.warnings)
             env_radiance = None
             for kind, kind_dir, index, tile, (positions, normals, offsets) in work:
-                if should_cancel():
-                    raise BakeCancelled("render cancelled")
-                progress(finished_pixels / total_pixels, f"{kind} {tile.file} ({len(tile.texels)} texels)")
                 flags = np.ones(len(positions))
                 tick = time.perf_counter()
                 if kind == "env_visibility":
@@ -438,7 +441,7 @@ def render_stage(scene, plan, out_dir, *, share: str | None = None, midpoints: i
                                     "samples": index.samples, "kind": kind})
                 result.tiles_rendered[kind] += 1
                 finished_pixels += len(tile.texels)
-                progress(finished_pixels / total_pixels, f"{kind} {tile.file} done")
+                yield finished_pixels / total_pixels, f"{kind} {tile.file} done ({len(tile.texels)} texels)"
     pictures = _save_previews(out_dir, plan_hash, [kind for kind, *_ in jobs])
     result.seconds = time.perf_counter() - start
     result.rays_per_second = rays / render_seconds if render_seconds > 0 else 0.0

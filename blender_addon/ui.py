@@ -21,11 +21,20 @@ def draw_sg_lightfield(layout, context):
     col.prop(settings, "training_budget_s")
     layout.prop(settings, "device")
     layout.prop(settings, "output_dir")
+    layout.operator("sg_lightfield.show_plan", icon="INFO")
+    if settings.plan_text:
+        box = layout.box()
+        for line in settings.plan_text.splitlines():
+            box.label(text=line, icon="ERROR" if line.startswith("!") else "NONE")
     if settings.is_baking:
         layout.progress(factor=settings.progress, type="BAR", text=settings.status or "Baking")
+        layout.operator("sg_lightfield.cancel", icon="CANCEL")
+    elif settings.status:
+        layout.label(text=settings.status)
     row = layout.row(align=True)
     row.operator("sg_lightfield.bake", icon="RENDER_STILL")
     row.operator("sg_lightfield.remove_bake", icon="LOOP_BACK")
+    layout.operator("sg_lightfield.open_report", icon="TEXT")
 
 
 class SGLF_PT_render(bpy.types.Panel):

@@ -18,7 +18,7 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script: make the repository importable
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from shaders.bake_plan import PRESETS, BakeCancelled, BakeInputError, BakeSettings, write_json_atomic  # noqa: E402
+from shaders.bake_plan import PRESETS, BakeCancelled, BakeInputError, BakeSettings  # noqa: E402
 
 ALL_STAGES = ("capture", "render", "train", "apply", "evaluate")
 IMPLEMENTED_STAGES = ("capture", "render", "train", "apply")  # the plan is always made; stages are added here as they land
@@ -111,6 +111,8 @@ class Reporter:
             print(f"{fields['stage']}: {fields['summary']} ({fields['seconds']:.2f} s)")
             for warning in fields.get("warnings", []):
                 print(f"  ! {warning}")
+        elif kind == "saved":
+            print(fields["message"])
         elif kind == "done":
             print(f"done: {fields.get('message', '')}")
 
@@ -152,8 +154,31 @@ def plan_decisions(plan) -> list[str]:
     return lines
 
 
+def stage_summary(stage: str, result, plan) -> tuple[str, list]:
+    """One line per finished stage for people (and the JSON 'stage' event)."""
+    if stage == "capture":
+        return (f"{result.texels} texels in a {result.atlas_width}x{result.atlas_height} atlas, "
+                f"{result.coverage_percent:.1f}% covered, {result.pushed_out_texels} pushed out, "
+                f"{result.buried_texels} buried"), result.warnings
+    if stage == "render":
+        rendered = ", ".join(f"{k} {v}" for k, v in result.tiles_rendered.items())
+        skipped = sum(result.tiles_skipped.values())
+        return (f"{result.texels} texels; tiles rendered: {rendered}"
+                + (f"; {skipped} already finished" if skipped else "")
+                + f"; {result.rays_per_second / 1e6:.2f} M rays/s"), result.warnings
+    if stage == "train":
+        metrics = result.metrics if hasattr(result, "metrics") else (result or {}).get("metrics", {})
+        lf = metrics.get("lightfield", {})
+        return (f"{plan.max_sg_count} SGs; light field loss {lf.get('loss', float('nan')):.4f}, "
+                f"RMSE {lf.get('rmse', float('nan')):.4f}"
+                + (f", midpoint RMSE {lf['midpoint']['rmse']:.4f}" if "midpoint" in lf else "")), []
+    if stage == "apply":
+        return f"{len(result['materials'])} materials baked ({result['nodes']} nodes in '{result['node_group']}')", []
+    return "", []
+
+
 def run(ns, reporter: Reporter) -> int:
-    from blender_addon.scene_analysis import build_plan
+    from blender_addon.pipeline import BakeJob
 
     settings = BakeSettings.from_preset(
         ns.preset, texel_density=ns.texel_density, lightfield_resolution=ns.lightfield_resolution,
@@ -161,10 +186,17 @@ def run(ns, reporter: Reporter) -> int:
     out = ns.out.expanduser().resolve()
     if out.exists() and not out.is_dir():
         raise BakeInputError(f"{ns.out}: exists and is not a directory")
+    if not 0 < ns.tile_megapixels <= 256:
+        raise BakeInputError(f"--tile-megapixels {ns.tile_megapixels} is outside 0..256")
+    if not 0 <= ns.midpoints <= 100_000:
+        raise BakeInputError(f"--midpoints {ns.midpoints} is outside 0..100000")
+    if ns.in_place and not ns.blend:
+        raise BakeInputError("--in-place needs --blend FILE (the file to overwrite)")
     scene = load_scene(ns)
-    plan = build_plan(scene, settings)
-    data = plan.to_dict()
-    write_json_atomic(out / "plan.json", data)
+    job = BakeJob(scene, settings, out, stages=[] if ns.plan_only else ns.stages, share=ns.tile,
+                  midpoints=ns.midpoints, tile_megapixels=ns.tile_megapixels, lightmap_uv=ns.lightmap_uv,
+                  pack_images=not ns.external_images)
+    plan, data = job.plan, job.plan.to_dict()
     reporter.event("plan", summary=data["summary"], hash=data["hash"], texels=data["texels"],
                    decisions=plan_decisions(plan), warnings=plan.warnings, path=str(out / "plan.json"))
     if ns.plan_only:
@@ -174,62 +206,34 @@ def run(ns, reporter: Reporter) -> int:
     if missing:
         raise BakeInputError(f"stage(s) {', '.join(missing)} not available in this version yet; "
                              f"available: {', '.join(IMPLEMENTED_STAGES)} (or --plan-only)")
-    if "capture" in ns.stages:
-        from blender_addon.capture import capture
+    reported = set()
 
-        result = capture(scene, plan, out, lightmap_uv_layer=ns.lightmap_uv,
-                         progress=lambda f, m: reporter.progress("capture", f, m))
-        reporter.event("stage", stage="capture", seconds=round(result.seconds, 3), texels=result.texels,
-                       summary=(f"{result.texels} texels in a {result.atlas_width}x{result.atlas_height} atlas, "
-                                f"{result.coverage_percent:.1f}% covered, {result.pushed_out_texels} pushed out, "
-                                f"{result.buried_texels} buried"), warnings=result.warnings)
-    if "render" in ns.stages:
-        from blender_addon.render import render_stage
+    def progress(stage, fraction, message):
+        for finished in [s for s in job.results if s not in reported]:
+            reported.add(finished)
+            reporter.end_bar()
+            summary, warnings = stage_summary(finished, job.results[finished], plan)
+            reporter.event("stage", stage=finished, seconds=round(job.timings[finished], 3), summary=summary,
+                           warnings=warnings)
+        if stage not in reported:
+            reporter.progress(stage, fraction, message)
 
-        if not 0 < ns.tile_megapixels <= 256:
-            raise BakeInputError(f"--tile-megapixels {ns.tile_megapixels} is outside 0..256")
-        if not 0 <= ns.midpoints <= 100_000:
-            raise BakeInputError(f"--midpoints {ns.midpoints} is outside 0..100000")
-        result = render_stage(scene, plan, out, share=ns.tile, midpoints=ns.midpoints,
-                              max_tile_megapixels=ns.tile_megapixels,
-                              progress=lambda f, m: reporter.progress("render", f, m))
-        rendered = ", ".join(f"{k} {v}" for k, v in result.tiles_rendered.items())
-        skipped = sum(result.tiles_skipped.values())
-        reporter.event("stage", stage="render", seconds=round(result.seconds, 3),
-                       summary=(f"{result.texels} texels; tiles rendered: {rendered}"
-                                + (f"; {skipped} already finished" if skipped else "")
-                                + f"; {result.rays_per_second / 1e6:.2f} M rays/s"), warnings=result.warnings)
-    if "train" in ns.stages:
-        try:
-            from training.train_stage import train_stage
-        except ImportError as exc:
-            raise BakeInputError(f"the train stage needs torch ({exc}); run it with a Python that has torch: "
-                                 "pip install torch==2.13.0, then python -m training.train_stage --out DIR") from exc
-        result = train_stage(out, plan, progress=lambda f, m: reporter.progress("train", f, m))
-        lf = result.metrics.get("lightfield", {})
-        summary = (f"{plan.max_sg_count} SGs, {result.bytes_per_texel} bytes/texel; light field loss "
-                   f"{lf.get('loss', float('nan')):.4f}, RMSE {lf.get('rmse', float('nan')):.4f}"
-                   + (f", midpoint RMSE {lf['midpoint']['rmse']:.4f}" if "midpoint" in lf else "")
-                   + f"; stopped: {', '.join(f'{k} {v}' for k, v in result.stopped_because.items())}")
-        reporter.event("stage", stage="train", seconds=round(result.seconds, 3), summary=summary, warnings=[])
-    if "apply" in ns.stages:
+    try:
+        job.run(progress)
+    except BaseException:
+        job.cancel()  # leaves the scene as it was; finished stages stay in the bake directory
+        raise
+    progress("", 1.0, "")
+    if "apply" in job.results:
         import bpy
 
-        from blender_addon.apply import apply_stage
-
-        if ns.in_place and not ns.blend:
-            raise BakeInputError("--in-place needs --blend FILE (the file to overwrite)")
-        tick = time.perf_counter()
-        info = apply_stage(scene, plan, out, pack_images=not ns.external_images,
-                           progress=lambda f, m: reporter.progress("apply", f, m))
-        target = ns.blend.expanduser().resolve() if ns.in_place else out / "baked.blend"
+        from blender_addon.render import quiet_stdout
         from blender_addon.scene_analysis import active_scene
 
-        with active_scene(scene):
+        target = ns.blend.expanduser().resolve() if ns.in_place else out / "baked.blend"
+        with active_scene(scene), quiet_stdout():
             bpy.ops.wm.save_as_mainfile(filepath=str(target), copy=not ns.in_place, compress=True)
-        reporter.event("stage", stage="apply", seconds=round(time.perf_counter() - tick, 3), warnings=[],
-                       summary=(f"{len(info['materials'])} materials baked ({info['nodes']} nodes in "
-                                f"'{info['node_group']}'); saved {target}"))
+        reporter.event("saved", path=str(target), message=f"baked scene saved to {target}")
     reporter.event("done", message=f"bake directory {out} (report: {out / 'report.json'})", ok=True)
     return 0
 

@@ -195,6 +195,21 @@ class BakePlan:
         return plan
 
 
+def drive(steps, progress=None, should_cancel=lambda: False, cancelled_message="cancelled"):
+    """Run a stage generator to its end: report each (fraction, message) it yields, ask `should_cancel` before
+    every step (closing the generator releases what it holds), and return the generator's result."""
+    while True:
+        if should_cancel():
+            steps.close()
+            raise BakeCancelled(cancelled_message)
+        try:
+            fraction, message = next(steps)
+        except StopIteration as stop:
+            return stop.value
+        if progress is not None:
+            progress(fraction, message)
+
+
 def write_json_atomic(path, data) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

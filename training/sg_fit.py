@@ -288,7 +288,8 @@ class Trainer:
             group["lr"] *= self.config.lr_drop_on_nan
         self.state.nan_recoveries += 1
 
-    def train(self, progress=None, should_cancel=lambda: False, epochs: int | None = None) -> TrainState:
+    def train(self, progress=None, should_cancel=lambda: False, epochs: int | None = None,
+              save_checkpoint: bool = True) -> TrainState:
         """Train until the time budget, a loss plateau, `epochs` more epochs, or cancellation."""
         config, state = self.config, self.state
         texels = len(self.data.images)
@@ -329,12 +330,13 @@ class Trainer:
                 if epochs is not None:
                     eta = (target_epoch - state.epoch) * spent / max(state.epoch, 1)
                 progress(state.epoch, state.losses[-1], min(spent / config.time_budget_s, 1.0), eta)
-            if self.checkpoint is not None and time.perf_counter() - last_checkpoint > config.checkpoint_every_s:
+            if (self.checkpoint is not None and save_checkpoint
+                    and time.perf_counter() - last_checkpoint > config.checkpoint_every_s):
                 self.save(self.checkpoint)
                 last_checkpoint = time.perf_counter()
         else:
             state.stopped_because = "epochs"
-        if self.checkpoint is not None:
+        if self.checkpoint is not None and save_checkpoint:
             self.save(self.checkpoint)
         return state
 

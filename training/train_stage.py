@@ -18,7 +18,7 @@ import numpy as np
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from shaders.bake_plan import BakeCancelled, BakeInputError, BakePlan  # noqa: E402
+from shaders.bake_plan import BakeCancelled, BakeInputError, BakePlan, drive  # noqa: E402
 from shaders.bake_report import save_png, update_report  # noqa: E402
 from shaders.env_visibility import above_horizon_fraction  # noqa: E402
 from shaders.lightfield_tiles import preview_mosaic, read_images  # noqa: E402
@@ -51,8 +51,15 @@ def midpoint_error(trainer_params, pairs_texels, texel_index, held_out, normals_
     return error_metrics(prediction, held_out, normals_mid)
 
 
-def train_stage(out_dir, plan: BakePlan, *, progress=None, should_cancel=lambda: False, device: str | None = None,
-                time_budget_s: float | None = None) -> TrainResult:
+def train_stage(out_dir, plan: BakePlan, *, progress=None, should_cancel=lambda: False, **options) -> TrainResult:
+    """Train every kind the plan needs and write SG textures; resumable from DIR/train checkpoints."""
+    return drive(train_steps(out_dir, plan, **options), progress, should_cancel,
+                 "training cancelled; the checkpoint resumes it")
+
+
+def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budget_s: float | None = None):
+    """The train stage as a generator: yields (fraction, message) after every epoch, returns TrainResult.
+    Closing it early saves the checkpoint, so the next run continues the same curve."""
     import torch
 
     from training.sg_fit import LightFieldData, TrainConfig, Trainer, error_metrics, reconstruct
@@ -78,13 +85,19 @@ def train_stage(out_dir, plan: BakePlan, *, progress=None, should_cancel=lambda:
         checkpoint = out_dir / "train" / f"{kind}_{plan.stage_hash('render')}_n{sg_count}.pt"
         trainer = Trainer(data, config, checkpoint=checkpoint)
 
-        def report(epoch, loss, fraction, eta, kind=kind, k=k):
-            if progress is not None:
-                progress((k + fraction) / len(kinds), f"{kind}: epoch {epoch}, loss {loss:.5f}")
-
-        state = trainer.train(progress=report, should_cancel=should_cancel)
-        if state.stopped_because == "cancelled":
-            raise BakeCancelled("training cancelled; the checkpoint resumes it")
+        last_save = time.perf_counter()
+        try:
+            while True:
+                state = trainer.train(epochs=1, save_checkpoint=False)
+                if time.perf_counter() - last_save > config.checkpoint_every_s:
+                    trainer.save(trainer.checkpoint)
+                    last_save = time.perf_counter()
+                if state.stopped_because != "epochs":
+                    break
+                fraction = min(state.seconds[-1] / max(config.time_budget_s, 1e-9), 1.0)
+                yield (k + fraction) / len(kinds), f"{kind}: epoch {state.epoch}, loss {state.losses[-1]:.5f}"
+        finally:
+            trainer.save(trainer.checkpoint)
         axis, sharpness, amplitude = trainer.parameters_numpy()
         prediction = reconstruct(axis, sharpness, amplitude, data.resolution)
         metrics = error_metrics(prediction, images, normals)
@@ -115,8 +128,7 @@ def train_stage(out_dir, plan: BakePlan, *, progress=None, should_cancel=lambda:
                   bytes_per_texel=result.bytes_per_texel,
                   train={"metrics": result.metrics, "epochs": result.epochs, "stopped_because": result.stopped_because,
                          "device": device, "files": result.files})
-    if progress is not None:
-        progress(1.0, "SG textures written")
+    yield 1.0, "SG textures written"
     return result
 
 

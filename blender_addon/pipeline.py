@@ -1,0 +1,206 @@
+"""The bake pipeline as a steppable job: the panel's modal operator and headless/bake.py drive the same code.
+
+`BakeJob.step()` does one unit of work (the capture, one render tile, one training epoch or a poll of the
+training worker, the apply) and returns (stage, overall fraction, message), or None when the job is done.
+`BakeJob.cancel()` stops at once and leaves the scene as it was before the job: the stages already written
+to the bake directory stay there and are reused by the next attempt (render tiles, training checkpoints).
+"""
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import queue
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+try:  # inside the installed extension the numpy side is a sibling package
+    from ..shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
+    from . import apply as apply_module
+    from .capture import capture, remove_lightmap_uvs
+    from .render import render_steps
+    from .scene_analysis import build_plan
+except ImportError:  # bpy as a module with the repository on sys.path
+    from blender_addon import apply as apply_module
+    from blender_addon.capture import capture, remove_lightmap_uvs
+    from blender_addon.render import render_steps
+    from blender_addon.scene_analysis import build_plan
+    from shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
+
+ALL_STAGES = ("capture", "render", "train", "apply", "evaluate")
+STAGE_WEIGHTS = {"capture": 0.05, "render": 0.45, "train": 0.40, "apply": 0.05, "evaluate": 0.05}
+REPO_ROOT = Path(__file__).resolve().parent.parent
+TORCH_HELP = ("training needs a Python with torch 2.13: set it in the add-on preferences (SG Lightfield > Python "
+              "with torch), e.g. a venv made with `python3.11 -m venv sglf && sglf/bin/pip install torch==2.13.0 "
+              "numpy==1.26.4 openexr==3.5.3`")
+
+
+def torch_in_process() -> bool:
+    return importlib.util.find_spec("torch") is not None
+
+
+def find_torch_python(preferred: str = "") -> str | None:
+    """A Python executable that can import torch: the preference, else this process's Python when it has torch
+    (bpy as a module), else python3.11 / python3 on PATH."""
+    candidates = [preferred] if preferred else []
+    if torch_in_process():
+        candidates.append(sys.executable)
+    candidates += [shutil.which("python3.11") or "", shutil.which("python3") or ""]
+    for candidate in candidates:
+        if not candidate or not os.path.isfile(candidate):
+            continue
+        probe = subprocess.run([candidate, "-c", "import torch, numpy, OpenEXR"], capture_output=True, timeout=120)
+        if probe.returncode == 0:
+            return candidate
+    return None
+
+
+class BakeJob:
+    def __init__(self, scene, settings, out_dir, *, stages=ALL_STAGES, share=None, midpoints=0,
+                 tile_megapixels=4.0, lightmap_uv="", pack_images=True, training="auto", torch_python=""):
+        """training: 'in_process' (this Python has torch), 'worker' (a subprocess), or 'auto'."""
+        unknown = [s for s in stages if s not in ALL_STAGES]
+        if unknown:
+            raise BakeInputError(f"unknown stage(s) {unknown}")
+        self.scene, self.settings, self.out_dir = scene, settings, Path(out_dir)
+        if self.out_dir.exists() and not self.out_dir.is_dir():
+            raise BakeInputError(f"{out_dir}: exists and is not a directory")
+        self.stages = [s for s in ALL_STAGES if s in stages and s != "evaluate"]
+        self.options = dict(share=share, midpoints=midpoints, tile_megapixels=tile_megapixels,
+                            lightmap_uv=lightmap_uv, pack_images=pack_images)
+        self.training, self.torch_python = training, torch_python
+        self.plan = build_plan(scene, settings)
+        write_json_atomic(self.out_dir / "plan.json", self.plan.to_dict())
+        self.results: dict = {}
+        self.timings: dict = {}
+        self.current_stage = ""
+        self._worker = None
+        self._applied = False
+        self._captured_here = False
+        self._steps = self._run()
+        self.done = False
+
+    # --- driving --------------------------------------------------------------------------------------
+    def step(self):
+        """One unit of work; returns (stage, overall fraction, message) or None when finished."""
+        if self.done:
+            return None
+        try:
+            return next(self._steps)
+        except StopIteration:
+            self.done = True
+            return None
+
+    def run(self, progress=None, should_cancel=lambda: False):
+        """Drive the job to its end (headless, or the operator's blocking execute)."""
+        while True:
+            if should_cancel():
+                self.cancel()
+                raise BakeCancelled("bake cancelled")
+            update = self.step()
+            if update is None:
+                return self.results
+            if progress is not None:
+                progress(*update)
+
+    def cancel(self):
+        """Stop now and leave the scene's data as it was before the job."""
+        self._steps.close()  # closes the stage generators: temporary render scene removed, checkpoint saved
+        if self._worker is not None:
+            self._worker.terminate()
+            self._worker.wait(timeout=10)
+        if self._captured_here and not self._applied:
+            remove_lightmap_uvs(self.scene)
+        self.done = True
+
+    # --- stages ---------------------------------------------------------------------------------------
+    def _overall(self, stage, fraction):
+        done = sum(STAGE_WEIGHTS[s] for s in self.stages[:self.stages.index(stage)])
+        total = sum(STAGE_WEIGHTS[s] for s in self.stages) or 1.0
+        return min((done + STAGE_WEIGHTS[stage] * fraction) / total, 1.0)
+
+    def _run(self):
+        for stage in self.stages:
+            self.current_stage = stage
+            start = time.perf_counter()
+            result = yield from getattr(self, f"_{stage}")()
+            self.results[stage] = result
+            self.timings[stage] = time.perf_counter() - start
+            yield stage, self._overall(stage, 1.0), f"{stage} done"
+
+    def _capture(self):
+        yield "capture", self._overall("capture", 0.0), "lightmap UVs and texel maps"
+        self._captured_here = True
+        return capture(self.scene, self.plan, self.out_dir, lightmap_uv_layer=self.options["lightmap_uv"])
+
+    def _render(self):
+        steps = render_steps(self.scene, self.plan, self.out_dir, share=self.options["share"],
+                             midpoints=self.options["midpoints"], max_tile_megapixels=self.options["tile_megapixels"])
+        try:
+            while True:
+                fraction, message = next(steps)
+                yield "render", self._overall("render", fraction), message
+        except StopIteration as stop:
+            return stop.value
+        finally:
+            steps.close()
+
+    def _train(self):
+        mode = self.training
+        if mode == "auto":
+            mode = "in_process" if torch_in_process() else "worker"
+        if mode == "in_process":
+            from training.train_stage import train_steps
+
+            steps = train_steps(self.out_dir, self.plan)
+            try:
+                while True:
+                    fraction, message = next(steps)
+                    yield "train", self._overall("train", fraction), message
+            except StopIteration as stop:
+                return stop.value
+            finally:
+                steps.close()
+        return (yield from self._train_worker())
+
+    def _train_worker(self):
+        """Training in a separate Python with torch; its JSON progress lines feed the progress bar."""
+        python = find_torch_python(self.torch_python)
+        if python is None:
+            raise BakeInputError(TORCH_HELP)
+        env = {**os.environ, "PYTHONPATH": str(REPO_ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+        self._worker = subprocess.Popen([python, "-m", "training.train_stage", "--out", str(self.out_dir), "--json"],
+                                        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                                        cwd=str(REPO_ROOT))
+        lines: queue.Queue = queue.Queue()
+        reader = threading.Thread(target=lambda: [lines.put(line) for line in self._worker.stdout], daemon=True)
+        reader.start()
+        result, fraction, message = None, 0.0, "starting the training worker"
+        while self._worker.poll() is None or not lines.empty():
+            try:
+                event = json.loads(lines.get(timeout=0.1))
+            except queue.Empty:
+                yield "train", self._overall("train", fraction), message  # keeps the UI responsive
+                continue
+            except ValueError:
+                continue
+            if event.get("event") == "progress":
+                fraction, message = max(fraction, event["fraction"]), event.get("message", "")
+                yield "train", self._overall("train", fraction), message
+            elif event.get("event") == "stage":
+                result = event
+        if self._worker.returncode != 0:
+            error = self._worker.stderr.read().strip().splitlines()
+            raise BakeInputError(error[-1].removeprefix("error: ") if error else "the training worker failed")
+        self._worker = None
+        return result
+
+    def _apply(self):
+        yield "apply", self._overall("apply", 0.0), "materials"
+        info = apply_module.apply_stage(self.scene, self.plan, self.out_dir, pack_images=self.options["pack_images"])
+        self._applied = True
+        return info
