@@ -32,10 +32,10 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.texel_maps import channels, read_texel_maps
     from ..shaders.texel_raster import dilate
     from .capture import LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, remove_lightmap_uvs
-    from .scene_analysis import principled_surface
+    from .scene_analysis import BAKED_COPY_KEY, principled_surface
 except ImportError:  # bpy as a module with the repository on sys.path
     from blender_addon.capture import LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, remove_lightmap_uvs
-    from blender_addon.scene_analysis import principled_surface
+    from blender_addon.scene_analysis import BAKED_COPY_KEY, principled_surface
     from shaders.bake_plan import BakeInputError
     from shaders.bake_report import update_report
     from shaders.exr_io import write_exr
@@ -50,7 +50,7 @@ except ImportError:  # bpy as a module with the repository on sys.path
 
 BAKE_RECORD_KEY = "sglf_bake"  # on the scene: JSON {object: {slot index: original material}}
 COPY_SUFFIX = " (SG bake)"
-COPY_KEY = "sglf_original"  # on a baked copy: the original material's name
+COPY_KEY = BAKED_COPY_KEY  # on a baked copy: the original material's name
 FAKE_USER_KEY = "sglf_fake_user_set"  # on an original: we set its fake user (and clear it again)
 IMAGE_NAME = "SG Lightfield textures"
 PACKED_FILE = "sg_packed.exr"

@@ -35,9 +35,9 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.texel_maps import (CAPTURE_PICTURES, FLAG_BURIED, FLAG_CENTRE_INSIDE, FLAG_COVERED, FLAG_GUTTER,
                                       FLAG_PUSHED_OUT, TEXEL_CHANNELS, TEXELS_FILE, TEXELS_JSON, save_capture_pictures)
     from ..shaders.texel_raster import centre_overlap_count, dilate, rasterize, shelf_pack
-    from .scene_analysis import active_scene, principled_surface
+    from .scene_analysis import active_scene, principled_surface, unbaked
 except ImportError:  # bpy as a module with the repository on sys.path
-    from blender_addon.scene_analysis import active_scene, principled_surface
+    from blender_addon.scene_analysis import active_scene, principled_surface, unbaked
     from shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
     from shaders.bake_report import update_report
     from shaders.exr_io import write_exr
@@ -227,7 +227,7 @@ def _material_table(objects, plan):
     plans = {mp.name: mp for op in plan.objects for mp in op.materials}
     for obj in objects:
         for slot in obj.material_slots or [None]:
-            material = slot.material if slot is not None else None
+            material = unbaked(slot.material) if slot is not None else None
             name = material.name if material is not None else "(no material)"
             if name in names:
                 continue
@@ -242,7 +242,7 @@ def _material_table(objects, plan):
 
 def _object_material_ids(obj, materials):
     by_name = {m["name"]: m["id"] for m in materials}
-    slots = [s.material.name if s.material is not None else "(no material)" for s in obj.material_slots]
+    slots = [unbaked(s.material).name if s.material is not None else "(no material)" for s in obj.material_slots]
     return np.array([by_name[n] for n in slots] or [by_name["(no material)"]], np.int64)
 
 

@@ -69,7 +69,7 @@ class BakeJob:
         self.scene, self.settings, self.out_dir = scene, settings, Path(out_dir)
         if self.out_dir.exists() and not self.out_dir.is_dir():
             raise BakeInputError(f"{out_dir}: exists and is not a directory")
-        self.stages = [s for s in ALL_STAGES if s in stages and s != "evaluate"]
+        self.stages = [s for s in ALL_STAGES if s in stages]
         self.options = dict(share=share, midpoints=midpoints, tile_megapixels=tile_megapixels,
                             lightmap_uv=lightmap_uv, pack_images=pack_images)
         self.training, self.torch_python = training, torch_python
@@ -198,6 +198,15 @@ class BakeJob:
             raise BakeInputError(error[-1].removeprefix("error: ") if error else "the training worker failed")
         self._worker = None
         return result
+
+    def _evaluate(self):
+        try:
+            from .evaluate import evaluate_stage
+        except ImportError:
+            from blender_addon.evaluate import evaluate_stage
+
+        yield "evaluate", self._overall("evaluate", 0.0), "reference and baked renders"
+        return evaluate_stage(self.scene, self.plan, self.out_dir)
 
     def _apply(self):
         yield "apply", self._overall("apply", 0.0), "materials"

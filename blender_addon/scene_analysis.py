@@ -53,7 +53,18 @@ def _input_value(node, name, default):
     return (tuple(value) if hasattr(value, "__len__") else float(value)), False
 
 
+BAKED_COPY_KEY = "sglf_original"  # set by the apply stage on its copies; the plan looks through them
+
+
+def unbaked(material):
+    """The user's material behind an SG-baked copy (the plan of a baked scene equals the plan before)."""
+    if material is not None and BAKED_COPY_KEY in material:
+        return bpy.data.materials.get(material[BAKED_COPY_KEY], material)
+    return material
+
+
 def analyse_material(material, settings: BakeSettings) -> MaterialPlan:
+    material = unbaked(material)
     name = material.name if material else "(no material)"
     bsdf = _surface_bsdf(material)
     if bsdf is None:
@@ -207,7 +218,7 @@ def _build_plan(scene, settings: BakeSettings, depsgraph) -> BakePlan:
     for obj in meshes:
         mats = [slot.material for slot in obj.material_slots] or [None]
         mat_plans = [analyse_material(m, settings) for m in mats]
-        if any(_is_emissive(m) for m in mats if m is not None):
+        if any(_is_emissive(unbaked(m)) for m in mats if m is not None):
             emissive.append(obj.name)
         area = _world_area(obj, depsgraph)
         glossy = any(mp.glossy for mp in mat_plans)

@@ -21,7 +21,7 @@ if __package__ in (None, ""):  # run as a script: make the repository importable
 from shaders.bake_plan import PRESETS, BakeCancelled, BakeInputError, BakeSettings  # noqa: E402
 
 ALL_STAGES = ("capture", "render", "train", "apply", "evaluate")
-IMPLEMENTED_STAGES = ("capture", "render", "train", "apply")  # the plan is always made; stages are added here as they land
+IMPLEMENTED_STAGES = ALL_STAGES  # the plan is always made; stages are added here as they land
 
 
 def script_args(argv: list[str]) -> list[str]:
@@ -172,6 +172,9 @@ def stage_summary(stage: str, result, plan) -> tuple[str, list]:
         return (f"{plan.max_sg_count} SGs; light field loss {lf.get('loss', float('nan')):.4f}, "
                 f"RMSE {lf.get('rmse', float('nan')):.4f}"
                 + (f", midpoint RMSE {lf['midpoint']['rmse']:.4f}" if "midpoint" in lf else "")), []
+    if stage == "evaluate":
+        return (f"RMSE {result['rmse']:.4f}, PSNR {result['psnr']:.2f} dB, FLIP {result['flip']:.4f} over "
+                f"{len(result['views'])} views (reference noise RMSE {result['reference_noise_rmse']:.4f})"), []
     if stage == "apply":
         return f"{len(result['materials'])} materials baked ({result['nodes']} nodes in '{result['node_group']}')", []
     return "", []
@@ -209,14 +212,15 @@ def run(ns, reporter: Reporter) -> int:
     reported = set()
 
     def progress(stage, fraction, message):
+        """The bar shows the whole bake's progress (fraction over all stages) labelled with the current stage."""
+        if stage:
+            reporter.progress(stage, fraction, message)
         for finished in [s for s in job.results if s not in reported]:
             reported.add(finished)
             reporter.end_bar()
             summary, warnings = stage_summary(finished, job.results[finished], plan)
             reporter.event("stage", stage=finished, seconds=round(job.timings[finished], 3), summary=summary,
                            warnings=warnings)
-        if stage not in reported:
-            reporter.progress(stage, fraction, message)
 
     try:
         job.run(progress)
@@ -234,7 +238,7 @@ def run(ns, reporter: Reporter) -> int:
         with active_scene(scene), quiet_stdout():
             bpy.ops.wm.save_as_mainfile(filepath=str(target), copy=not ns.in_place, compress=True)
         reporter.event("saved", path=str(target), message=f"baked scene saved to {target}")
-    reporter.event("done", message=f"bake directory {out} (report: {out / 'report.json'})", ok=True)
+    reporter.event("done", message=f"bake directory {out} (report: {out / 'report.html'})", ok=True)
     return 0
 
 

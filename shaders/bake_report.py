@@ -39,6 +39,11 @@ def update_report(out_dir, plan_hash: str, *, timings_s: dict | None = None, **f
     report.setdefault("timings_s", {}).update({k: round(float(v), 3) for k, v in (timings_s or {}).items()})
     report.update(fields)
     write_json_atomic(Path(out_dir) / REPORT_NAME, report)
+    try:
+        from .report_html import write_report_html
+    except ImportError:
+        from shaders.report_html import write_report_html
+    write_report_html(out_dir)
     return report
 
 

@@ -152,6 +152,18 @@ def test_write_back_remove_restores_everything_and_rebake_does_not_pile_up(tmp_p
         scene.camera.location = (1, -6, 0.5)
         scene.camera.rotation_euler = (1.5, 0, 0)
         bpy.ops.render.render(write_still=True, scene=scene.name)
+    from blender_addon.evaluate import evaluate_stage
+
+    objects_before = set(bpy.data.objects.keys())
+    errors = evaluate_stage(scene, plan, tmp_path, views=2, resolution=(32, 18), reference_samples=8)
+    assert len(errors["views"]) == 2 and all(np.isfinite(errors[k]) for k in ("rmse", "psnr", "flip"))
+    assert 0 <= errors["flip"] <= 1 and (tmp_path / "evaluate_view1.png").is_file()
+    assert set(bpy.data.objects.keys()) == objects_before  # temporary cameras removed
+    assert ball.material_slots[0].material.name == "Glossy (SG bake)"  # swaps for the reference undone
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["errors"]["flip"] == errors["flip"] and set(report["timings_s"]) >= {"capture", "render", "train",
+                                                                                        "apply", "evaluate"}
+    assert "data:image/png;base64" in (tmp_path / "report.html").read_text()
     assert remove_bake(scene) == 2  # the slot of each instance (they share the mesh and its slot)
     assert ball.material_slots[0].material == glossy and twin.material_slots[0].material == glossy
     assert {m.name: _material_fingerprint(m) for m in (glossy, rough)} == before

@@ -1,0 +1,147 @@
+"""Evaluate stage: the baked scene against a Cycles path-traced reference, from a few fixed views.
+
+Reference: the scene with its original materials, path traced by Cycles at `reference_samples` spp in two
+independent halves (different seeds). Their difference measures the reference's own noise: the full
+reference's noise RMSE is RMSE(half A, half B) / 2, reported next to the bake's error so a reader can see the
+reference is good enough (noise well below the error). Test: the same views with the baked materials, which
+Cycles evaluates through the same node group EEVEE uses (emission only), at the same samples as the reference
+because surfaces the bake leaves alone (rough ones) are still path traced.
+Metrics on tone-mapped images (shaders/image_metrics.py): RMSE, PSNR, FLIP; pictures reference | bake | FLIP.
+Nothing of the scene changes: temporary cameras and material swaps are undone before returning.
+"""
+from __future__ import annotations
+
+import json
+import math
+import tempfile
+import time
+from pathlib import Path
+
+import bpy
+import numpy as np
+from mathutils import Vector
+
+try:  # inside the installed extension the numpy side is a sibling package
+    from ..shaders.bake_plan import BakeInputError
+    from ..shaders.bake_report import save_png, update_report
+    from ..shaders.exr_io import read_exr
+    from ..shaders.image_metrics import flip, heat, psnr, rmse, tonemap
+    from .apply import BAKE_RECORD_KEY
+    from .render import quiet_stdout
+    from .scene_analysis import active_scene
+except ImportError:  # bpy as a module with the repository on sys.path
+    from blender_addon.apply import BAKE_RECORD_KEY
+    from blender_addon.render import quiet_stdout
+    from blender_addon.scene_analysis import active_scene
+    from shaders.bake_plan import BakeInputError
+    from shaders.bake_report import save_png, update_report
+    from shaders.exr_io import read_exr
+    from shaders.image_metrics import flip, heat, psnr, rmse, tonemap
+
+
+def _view_cameras(scene, plan, count):
+    """The scene camera, then cameras orbiting the baked objects' bounding box, looking at its centre."""
+    cameras = []
+    if scene.camera is not None:
+        cameras.append((scene.camera, False))
+    points = []
+    for name in (o.name for o in plan.baked_objects):
+        obj = scene.objects[name]
+        points += [obj.matrix_world @ Vector(corner) for corner in obj.bound_box]
+    if not points:
+        return cameras
+    lo = Vector(np.min(np.array(points), axis=0))
+    hi = Vector(np.max(np.array(points), axis=0))
+    centre, radius = (lo + hi) / 2, max((hi - lo).length / 2, 1e-3)
+    for k in range(count - len(cameras)):
+        azimuth = math.radians(35 + 110 * k)
+        data = bpy.data.cameras.new("SGLF evaluate")
+        data.lens = 30
+        camera = bpy.data.objects.new("SGLF evaluate", data)
+        camera.location = centre + radius * 2.2 * Vector((math.cos(azimuth), -math.sin(azimuth), 0.55))
+        camera.rotation_euler = (centre - camera.location).to_track_quat("-Z", "Y").to_euler()
+        scene.collection.objects.link(camera)
+        cameras.append((camera, True))
+    return cameras[:count]
+
+
+def _swap_to_originals(scene):
+    """Put the original materials back into the baked slots; returns the undo list."""
+    record = json.loads(scene.get(BAKE_RECORD_KEY, "{}"))
+    undo = []
+    for object_name, slots in record.items():
+        obj = scene.objects.get(object_name)
+        for index, original in slots.items():
+            if obj is not None and int(index) < len(obj.material_slots) and original in bpy.data.materials:
+                slot = obj.material_slots[int(index)]
+                undo.append((slot, slot.material))
+                slot.material = bpy.data.materials[original]
+    return undo
+
+
+def _render(scene, camera, path, samples, seed):
+    scene.camera = camera
+    scene.cycles.samples, scene.cycles.seed = samples, seed
+    scene.render.filepath = str(path)
+    with active_scene(scene), quiet_stdout():
+        bpy.ops.render.render(write_still=True, scene=scene.name)
+    pixels, _, _ = read_exr(path, channels=["R", "G", "B"])
+    return pixels.astype(np.float64)
+
+
+def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144), reference_samples: int = 128,
+                   test_samples: int | None = None) -> dict:
+    """test_samples defaults to reference_samples: surfaces the bake does not replace (rough materials) are
+    still path traced in the test render, and must be as converged as in the reference to compare fairly."""
+    test_samples = test_samples or reference_samples
+    start = time.perf_counter()
+    out_dir = Path(out_dir)
+    if BAKE_RECORD_KEY not in scene:
+        raise BakeInputError(f"scene '{scene.name}' has no applied bake to evaluate; run the apply stage first")
+    render, cycles = scene.render, scene.cycles
+    saved = dict(engine=render.engine, x=render.resolution_x, y=render.resolution_y, pct=render.resolution_percentage,
+                 fmt=render.image_settings.file_format, depth=render.image_settings.color_depth,
+                 path=render.filepath, samples=cycles.samples, seed=cycles.seed, denoise=cycles.use_denoising,
+                 adaptive=cycles.use_adaptive_sampling, camera=scene.camera)
+    cameras = _view_cameras(scene, plan, views)
+    results = []
+    try:
+        render.engine = "CYCLES"
+        render.resolution_x, render.resolution_y, render.resolution_percentage = *resolution, 100
+        render.image_settings.file_format, render.image_settings.color_depth = "OPEN_EXR", "32"
+        cycles.use_denoising, cycles.use_adaptive_sampling = False, False
+        with tempfile.TemporaryDirectory(prefix=".sglf-evaluate-", dir=out_dir) as tmp:
+            for k, (camera, _) in enumerate(cameras):
+                ours = _render(scene, camera, Path(tmp) / "ours.exr", test_samples, 0)
+                undo = _swap_to_originals(scene)
+                try:
+                    half_a = _render(scene, camera, Path(tmp) / "a.exr", reference_samples // 2, 1)
+                    half_b = _render(scene, camera, Path(tmp) / "b.exr", reference_samples // 2, 2)
+                finally:
+                    for slot, material in reversed(undo):  # reversed: instances may share one slot
+                        slot.material = material
+                reference = 0.5 * (half_a + half_b)
+                ref_ldr, ours_ldr = tonemap(reference), tonemap(ours)
+                mean_flip, flip_map = flip(ref_ldr, ours_ldr)
+                noise = rmse(tonemap(half_a), tonemap(half_b)) / 2
+                picture = f"evaluate_view{k}.png"
+                gap = np.ones((ref_ldr.shape[0], 2, 3))
+                save_png(out_dir / picture, np.concatenate([ref_ldr, gap, ours_ldr, gap, heat(flip_map, 1.0)], axis=1),
+                         min_width=0)
+                results.append({"view": camera.name, "rmse": rmse(ref_ldr, ours_ldr), "psnr": psnr(ref_ldr, ours_ldr),
+                                "flip": mean_flip, "reference_noise_rmse": noise, "picture": picture})
+    finally:
+        for camera, temporary in cameras:
+            if temporary:
+                bpy.data.objects.remove(camera)
+        render.engine, render.resolution_x, render.resolution_y = saved["engine"], saved["x"], saved["y"]
+        render.resolution_percentage, render.filepath = saved["pct"], saved["path"]
+        render.image_settings.file_format, render.image_settings.color_depth = saved["fmt"], saved["depth"]
+        cycles.samples, cycles.seed, cycles.use_denoising = saved["samples"], saved["seed"], saved["denoise"]
+        cycles.use_adaptive_sampling, scene.camera = saved["adaptive"], saved["camera"]
+    errors = {key: float(np.mean([r[key] for r in results])) for key in ("rmse", "psnr", "flip", "reference_noise_rmse")}
+    errors["views"] = results
+    errors["reference_samples"], errors["test_samples"] = reference_samples, test_samples
+    seconds = time.perf_counter() - start
+    update_report(out_dir, plan.stage_hash("capture"), timings_s={"evaluate": seconds}, errors=errors)
+    return errors

@@ -1,0 +1,72 @@
+"""report.html: one self-contained page per bake (pictures embedded as data URIs), from report.json, plan.json
+and the PNGs the stages wrote. Pure Python; rewritten after every stage."""
+from __future__ import annotations
+
+import base64
+import html
+import json
+from pathlib import Path
+
+PICTURE_CAPTIONS = [
+    ("capture_position.png", "Texel positions (atlas)"), ("capture_normal.png", "Texel shading normals"),
+    ("capture_validity.png", "Texel validity: white covered, blue partly covered, orange pushed out, red buried, grey gutter"),
+    ("render_lightfield.png", "Light fields of 16 texels (octahedral, tone mapped)"),
+    ("render_env_visibility.png", "Environment visibility W_E of 16 texels"),
+    ("train_lightfield.png", "Rendered light fields (left) and their SG reconstruction (right)"),
+    ("train_env_visibility.png", "W_E rendered (left) and its SGs (right)"),
+]
+
+
+def _image(path: Path) -> str:
+    data = base64.b64encode(path.read_bytes()).decode()
+    return f'<img src="data:image/png;base64,{data}" style="max-width:100%;image-rendering:pixelated">'
+
+
+def write_report_html(out_dir) -> Path:
+    out_dir = Path(out_dir)
+    report = json.loads((out_dir / "report.json").read_text()) if (out_dir / "report.json").is_file() else {}
+    plan = json.loads((out_dir / "plan.json").read_text()) if (out_dir / "plan.json").is_file() else {}
+    esc = html.escape
+    parts = ["<!doctype html><meta charset=utf-8><title>SG Lightfield bake report</title>",
+             "<style>body{font:14px sans-serif;max-width:1100px;margin:2em auto}td,th{padding:2px 10px;"
+             "text-align:left}table{border-collapse:collapse}tr:nth-child(even){background:#f3f3f3}</style>",
+             f"<h1>SG Lightfield bake: {esc(plan.get('scene', ''))}</h1>",
+             f"<p><b>Plan:</b> {esc(plan.get('summary', ''))}</p><ul>"]
+    for obj in plan.get("objects", []):
+        parts.append(f"<li>{esc(obj['name'])}: {'bake' if obj['bake_lightfield'] else 'skip'} "
+                     f"({esc(obj['reason'])}; {obj['texels']} texels planned)</li>")
+    env = plan.get("environment", {})
+    parts.append(f"<li>environment: {esc(env.get('reason', ''))}</li></ul>")
+    for warning in plan.get("warnings", []):
+        parts.append(f"<p>&#9888; {esc(warning)}</p>")
+    parts.append("<h2>Numbers</h2><table>")
+    timings = report.get("timings_s", {})
+    rows = [("texels", report.get("texels")), ("coverage %", report.get("coverage_percent")),
+            ("pushed-out texels", report.get("pushed_out_texels")), ("buried texels", report.get("buried_texels")),
+            ("SGs per texel", report.get("sg_count")), ("bytes per texel", report.get("bytes_per_texel"))]
+    rows += [(f"{stage} seconds", seconds) for stage, seconds in timings.items()]
+    errors = report.get("errors", {})
+    rows += [(f"error {key}", errors.get(key)) for key in ("rmse", "psnr", "flip", "reference_noise_rmse")
+             if key in errors]
+    lightfield = report.get("train", {}).get("metrics", {}).get("lightfield", {})
+    rows += [(f"light-field fit {key}", value) for key, value in lightfield.items() if not isinstance(value, dict)]
+    if "midpoint" in lightfield:
+        rows.append(("held-out midpoint RMSE", lightfield["midpoint"]["rmse"]))
+    for key, value in rows:
+        if value is not None:
+            parts.append(f"<tr><th>{esc(key)}</th><td>{esc(str(round(value, 5) if isinstance(value, float) else value))}"
+                         "</td></tr>")
+    parts.append("</table>")
+    pictures = [(name, caption) for name, caption in PICTURE_CAPTIONS if (out_dir / name).is_file()]
+    pictures += [(view["picture"], f"{view['view']}: reference | SG bake | FLIP error (FLIP {view['flip']:.4f}, "
+                                   f"PSNR {view['psnr']:.2f} dB)") for view in errors.get("views", [])
+                 if (out_dir / view["picture"]).is_file()]
+    if pictures:
+        parts.append("<h2>Pictures</h2>")
+    for name, caption in pictures:
+        parts.append(f"<figure>{_image(out_dir / name)}<figcaption>{esc(caption)}</figcaption></figure>")
+    path = out_dir / "report.html"
+    tmp = path.with_suffix(".html.tmp")
+    tmp.write_text("\n".join(parts))
+    tmp.replace(path)
+    return path
