@@ -137,17 +137,21 @@ class BakeJob:
         self._captured_here = True
         return capture(self.scene, self.plan, self.out_dir, lightmap_uv_layer=self.options["lightmap_uv"])
 
-    def _render(self):
-        steps = render_steps(self.scene, self.plan, self.out_dir, share=self.options["share"],
-                             midpoints=self.options["midpoints"], max_tile_megapixels=self.options["tile_megapixels"])
+    def _stage_progress(self, stage, steps):
+        """Relay a stage generator's (fraction, message) as overall progress; return its result."""
         try:
             while True:
                 fraction, message = next(steps)
-                yield "render", self._overall("render", fraction), message
+                yield stage, self._overall(stage, fraction), message
         except StopIteration as stop:
             return stop.value
         finally:
             steps.close()
+
+    def _render(self):
+        return (yield from self._stage_progress("render", render_steps(
+            self.scene, self.plan, self.out_dir, share=self.options["share"], midpoints=self.options["midpoints"],
+            max_tile_megapixels=self.options["tile_megapixels"])))
 
     def _train(self):
         mode = self.training
@@ -156,15 +160,7 @@ class BakeJob:
         if mode == "in_process":
             from training.train_stage import train_steps
 
-            steps = train_steps(self.out_dir, self.plan)
-            try:
-                while True:
-                    fraction, message = next(steps)
-                    yield "train", self._overall("train", fraction), message
-            except StopIteration as stop:
-                return stop.value
-            finally:
-                steps.close()
+            return (yield from self._stage_progress("train", train_steps(self.out_dir, self.plan)))
         return (yield from self._train_worker())
 
     def _train_worker(self):

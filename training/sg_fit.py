@@ -44,6 +44,7 @@ class TrainConfig:
     device: str = "cpu"
     plateau_epochs: int = 40  # stop when the best loss has not improved by plateau_rel for this many epochs
     plateau_rel: float = 1e-3
+    below_horizon_weight: float = 0.0  # 0 = the paper's loss
     checkpoint_every_s: float = 30.0
     lr_drop_on_nan: float = 0.5
 
@@ -133,11 +134,15 @@ def predict(params, directions):
     return sg_sum_eval(directions, axis[:, None, None], sharpness[:, None, None], amplitude[:, None, None])
 
 
-def lightfield_loss(params, target, normals, directions, solid_angles):
-    """Solid-angle-weighted log-L2 over the upper hemisphere; returns (loss, weight sum)."""
+def lightfield_loss(params, target, normals, directions, solid_angles, below_weight: float = 0.0):
+    """Solid-angle-weighted log-L2 over the upper hemisphere; returns (loss, weight sum).
+
+    below_weight > 0 also pulls the prediction towards 0 below the texel's horizon (the rendered image is 0
+    there): the paper gives those directions no gradient, which leaves lobes there unconstrained, and a
+    neighbour whose horizon differs sees them after interpolation."""
     prediction = predict(params, directions)
     above = (directions * normals[:, None, None, :]).sum(-1) > 0
-    weight = solid_angles[None] * above
+    weight = solid_angles[None] * torch.where(above, 1.0, below_weight)
     error = (torch.log1p(target) - torch.log1p(prediction.clamp_min(0))) ** 2
     total = (error.mean(dim=-1) * weight).sum()
     return total / weight.sum().clamp_min(1e-12), weight.sum()
@@ -250,7 +255,8 @@ class Trainer:
         normals = self.data.normals[index].to(self.device)
         directions = jittered_directions(len(index), self.data.resolution, self.generator).to(self.device)
         params = constrain(self.raw_parameters(index), self.amplitude_scale)
-        loss, _ = lightfield_loss(params, target, normals, directions, self.solid_angles)
+        loss, _ = lightfield_loss(params, target, normals, directions, self.solid_angles,
+                                  self.config.below_horizon_weight)
         if self.mode == "per_texel" and self.axis_alignment > 0 and self.neighbours is not None:
             loss = loss + self.axis_alignment * self._alignment_penalty(index)
         return loss
