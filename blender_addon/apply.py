@@ -88,7 +88,7 @@ def build_packed_image(out_dir: Path, plan) -> tuple[SGTextureLayout, Path, dict
                              amplitude[r, c].astype(np.float64), shading[:, None, :]).sum(axis=1)
     lit = irradiance.sum(axis=1) > 1e-6 * max(irradiance.sum(axis=1).max(), 1e-30)
     rel = np.abs(from_sgs - irradiance).sum(axis=1)[lit] / irradiance.sum(axis=1)[lit]
-    layout = SGTextureLayout(n, has_irradiance=True)
+    layout = SGTextureLayout(n, has_irradiance=True, atlas_size=(shape[1], shape[0]))
     tiles = {}
     for j in range(n):
         tiles[("sg", j)] = np.concatenate([axis[..., j, :], encode_sharpness(sharpness[..., j])[..., None]], -1)
@@ -97,8 +97,9 @@ def build_packed_image(out_dir: Path, plan) -> tuple[SGTextureLayout, Path, dict
     path = write_exr(out_dir / PACKED_FILE, pack_tiles(layout, tiles, shape), precision="half",
                      channels=["R", "G", "B", "A"], metadata={"plan_hash": plan.stage_hash("train"),
                                                               "layout": json.dumps(layout.to_dict())})
-    measured = {"irradiance_from_sgs_rel_error_mean": float(rel.mean()) if len(rel) else 0.0,
-                "irradiance_from_sgs_rel_error_p95": float(np.percentile(rel, 95)) if len(rel) else 0.0}
+    measured = {"irradiance_from_sgs_rel_error_median": float(np.median(rel)) if len(rel) else 0.0,
+                "irradiance_from_sgs_rel_error_p95": float(np.percentile(rel, 95)) if len(rel) else 0.0,
+                "irradiance_from_sgs_rel_error_max": float(rel.max()) if len(rel) else 0.0}
     return layout, path, measured
 
 

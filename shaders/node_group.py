@@ -6,8 +6,10 @@ reference (`shade(NumpyOps(), ...)`) is the group's exact formula.
 
 Texture layout (one RGBA half-float image, `SGTextureLayout`): the lightmap atlas repeated as tiles in a
 grid; tile 'sg' j = (axis xyz, log-encoded sharpness), 'amp' j = (rgb amplitude, 0), 'irradiance' = (rgb, 1), 'iwev' j
-and 'iwev_amp' j likewise. Lookups sample tile t at (uv + tile offset) / grid with linear filtering; the
-atlas keeps a dilated border, so a lookup never bleeds into the next tile.
+and 'iwev_amp' j likewise. Bilinear filtering is done by the nodes from four 'Closest' lookups: EEVEE samples
+'Linear' image textures through mipmaps, and coarse mip levels average neighbouring tiles (measured: colour
+garbage on the baked spheres). The four texel corners and weights are computed once per material and clamped
+inside the atlas, so a lookup never reaches into the next tile, in Cycles and EEVEE alike.
 
 Versioned and idempotent: a group with the same name and version is updated in place (its users keep it);
 `GROUP_VERSION` changes whenever the formula or the interface changes.
@@ -33,6 +35,7 @@ class SGTextureLayout:
     sg_count: int
     iwev_count: int = 0
     has_irradiance: bool = True
+    atlas_size: tuple = (1, 1)  # (width, height) of one tile in texels
     tiles: list = field(default_factory=list)  # [(name, j)] in tile order
 
     def __post_init__(self):
@@ -55,7 +58,7 @@ class SGTextureLayout:
 
     def to_dict(self):
         return {"sg_count": self.sg_count, "iwev_count": self.iwev_count, "has_irradiance": self.has_irradiance,
-                "tiles": [list(t) for t in self.tiles]}
+                "atlas_size": list(self.atlas_size), "tiles": [list(t) for t in self.tiles]}
 
 
 class NodeOps:
@@ -182,16 +185,38 @@ def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GRO
     inputs = ops._node("NodeGroupInput")
     geometry = ops._node("ShaderNodeNewGeometry")
     columns, rows = layout.grid
+    width, height = (float(v) for v in layout.atlas_size)
+    # Shared by every tile: the four texel centres around UV (clamped inside the atlas) and their weights.
+    texel = ops._vmath("SUBTRACT", ops._vmath("MULTIPLY", inputs.outputs["UV"], (width, height, 1.0)), (0.5, 0.5, 0.0))
+    base = ops._vmath("FLOOR", texel)
+    fraction = ops._node("ShaderNodeSeparateXYZ")
+    group.links.new(ops._vmath("SUBTRACT", texel, base), fraction.inputs[0])
+    tx, ty = fraction.outputs["X"], fraction.outputs["Y"]
+    corners = []
+    for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
+        corner = ops._vmath("MULTIPLY", ops._vmath("ADD", base, (dx + 0.5, dy + 0.5, 0.0)),
+                            (1.0 / width, 1.0 / height, 1.0))
+        corner = ops._vmath("MAXIMUM", ops._vmath("MINIMUM", corner, (1 - 0.5 / width, 1 - 0.5 / height, 1.0)),
+                            (0.5 / width, 0.5 / height, 0.0))
+        wx = tx if dx else ops.sub(1.0, tx)
+        wy = ty if dy else ops.sub(1.0, ty)
+        corners.append((corner, ops.mul(wx, wy)))
     cache = {}
 
     def lookup(kind, j):
         if (kind, j) not in cache:
             col, row = layout.tile_offset(kind, j)
-            shifted = ops._vmath("ADD", inputs.outputs["UV"], (float(col), float(row), 0.0))
-            uv = ops._vmath("MULTIPLY", shifted, (1.0 / columns, 1.0 / rows, 1.0))
-            texture = ops._node("ShaderNodeTexImage", image=image, interpolation="Linear", extension="EXTEND")
-            group.links.new(uv, texture.inputs["Vector"])
-            cache[(kind, j)] = (texture.outputs["Color"], texture.outputs["Alpha"])
+            color_sum = alpha_sum = None
+            for corner, weight in corners:
+                shifted = ops._vmath("ADD", corner, (float(col), float(row), 0.0))
+                uv = ops._vmath("MULTIPLY", shifted, (1.0 / columns, 1.0 / rows, 1.0))
+                texture = ops._node("ShaderNodeTexImage", image=image, interpolation="Closest", extension="EXTEND")
+                group.links.new(uv, texture.inputs["Vector"])
+                color = ops.vscale(texture.outputs["Color"], weight)
+                alpha = ops.mul(texture.outputs["Alpha"], weight)
+                color_sum = color if color_sum is None else ops.vadd(color_sum, color)
+                alpha_sum = alpha if alpha_sum is None else ops.add(alpha_sum, alpha)
+            cache[(kind, j)] = (color_sum, alpha_sum)
         return cache[(kind, j)]
 
     result = shade(ops, lookup, inputs.outputs["Normal"], geometry.outputs["Incoming"], inputs.outputs["Roughness"],

@@ -53,36 +53,36 @@ def _parity_scene(group, width, height):
 
 
 def test_node_group_matches_its_numpy_reference_in_cycles(tmp_path):
-    """Texel-centre lookups (closest filtering isolates the formula from texture filtering) over a grid that
-    includes the extremes: sharpness 1e-4..1e4, amplitudes 0..1e4, roughness 0 (floored) to 1, grazing n.v."""
+    """Over a grid that includes the extremes: sharpness 1e-4..1e4, amplitudes 0..1e4, roughness 0 (floored)
+    to 1, grazing n.v; the stored (half-float) parameters feed the numpy reference."""
     n, h, w = 3, 6, 6
     rng = np.random.default_rng(0)
-    layout = SGTextureLayout(n, has_irradiance=True)
-    tiles = {}
+    # Every parameter cell spans 2 x 2 identical texels and each pixel centre hits the middle of a cell, so the
+    # node-side bilinear filter returns the cell's exact values despite Cycles' tiny pixel-filter jitter.
+    layout = SGTextureLayout(n, has_irradiance=True, atlas_size=(2 * w, 2 * h))
+    cells = {}
     for j in range(n):
         sharpness = np.exp(rng.uniform(np.log(1e-4), np.log(1e4), (h, w)))
         sharpness[0, 0], sharpness[0, 1] = 1e-4, 1e4
-        tiles[("sg", j)] = np.concatenate([rng.normal(size=(h, w, 3)), encode_sharpness(sharpness)[..., None]], -1)
+        cells[("sg", j)] = np.concatenate([rng.normal(size=(h, w, 3)), encode_sharpness(sharpness)[..., None]], -1)
         amplitude = rng.uniform(0, 20, (h, w, 3))
         amplitude[1, 0], amplitude[1, 1] = 0.0, 1e4
-        tiles[("amp", j)] = np.concatenate([amplitude, np.zeros((h, w, 1))], -1)
-    tiles[("irradiance", 0)] = np.concatenate([rng.uniform(0, 3, (h, w, 3)), np.ones((h, w, 1))], -1)
-    path = write_exr(tmp_path / "packed.exr", pack_tiles(layout, tiles, (h, w)), precision="half",
+        cells[("amp", j)] = np.concatenate([amplitude, np.zeros((h, w, 1))], -1)
+    cells[("irradiance", 0)] = np.concatenate([rng.uniform(0, 3, (h, w, 3)), np.ones((h, w, 1))], -1)
+    tiles = {key: np.repeat(np.repeat(value, 2, axis=0), 2, axis=1) for key, value in cells.items()}
+    path = write_exr(tmp_path / "packed.exr", pack_tiles(layout, tiles, (2 * h, 2 * w)), precision="half",
                      channels=["R", "G", "B", "A"])
     stored, _, _ = read_exr(path, channels=["R", "G", "B", "A"])
     image = bpy.data.images.load(str(path))
     image.colorspace_settings.name, image.alpha_mode = "Non-Color", "CHANNEL_PACKED"
     group = build_node_group(image, layout, name="SG Lightfield parity")
-    for node in group.nodes:
-        if node.type == "TEX_IMAGE":
-            node.interpolation = "Closest"
     scene, node = _parity_scene(group, w, h)
     columns, rows = layout.grid
 
     def lookup(kind, j):
         col, row_from_bottom = layout.tile_offset(kind, j)
-        top = (rows - 1 - row_from_bottom) * h
-        texel = stored[top:top + h, col * w:(col + 1) * w].astype(np.float64)
+        top = (rows - 1 - row_from_bottom) * 2 * h
+        texel = stored[top:top + 2 * h:2, col * 2 * w:(col + 1) * 2 * w:2].astype(np.float64)
         return texel[..., :3], texel[..., 3]
 
     worst = 0.0
@@ -171,3 +171,51 @@ def test_write_back_remove_restores_everything_and_rebake_does_not_pile_up(tmp_p
     assert not glossy.use_fake_user and "Glossy (SG bake)" not in bpy.data.materials
     assert GROUP_NAME not in bpy.data.node_groups and IMAGE_NAME not in bpy.data.images
     assert BAKE_RECORD_KEY not in scene
+
+
+def test_eevee_renders_the_baked_scene_like_cycles_evaluates_it(tmp_path):
+    """Every visible surface is either baked or a pure emitter, so both engines must show the same picture."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from blender_addon.pipeline import BakeJob
+    from shaders.image_metrics import tonemap
+
+    scene = bpy.data.scenes.new("eevee parity")
+    for i, roughness in enumerate((0.2, 0.45)):
+        ball = mesh_object(f"Ball {i}", uv_sphere(0.6, 24, 12), material(f"Metal {i}", roughness, metallic=1.0))
+        ball.location = (-0.8 + 1.6 * i, 0, 0)
+        scene.collection.objects.link(ball)
+    panel = mesh_object("Panel", uv_sphere(0.4, 12, 6), None)
+    light = bpy.data.materials.new("Panel light")
+    nodes = light.node_tree.nodes
+    nodes.remove(nodes["Principled BSDF"])
+    emission = nodes.new("ShaderNodeEmission")
+    emission.inputs["Strength"].default_value = 8.0
+    light.node_tree.links.new(emission.outputs[0], nodes["Material Output"].inputs["Surface"])
+    panel.data.materials.append(light)
+    panel.location = (0, -1.0, 1.6)
+    scene.collection.objects.link(panel)
+    camera = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+    camera.location, camera.rotation_euler = (0, -4.5, 0.3), (1.5, 0, 0)
+    scene.collection.objects.link(camera)
+    scene.camera, scene.world = camera, bpy.data.worlds.new("black")
+    scene.world.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.0
+    scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 64, 40, 100
+    settings = BakeSettings.from_preset("draft", texel_density=6.0, lightfield_resolution=8, samples=8, sg_count=4,
+                                        training_budget_s=5.0)
+    BakeJob(scene, settings, tmp_path, stages=("capture", "render", "train", "apply")).run()
+    blend = tmp_path / "baked.blend"
+    with active_scene(scene), quiet_stdout():
+        bpy.ops.wm.save_as_mainfile(filepath=str(blend), copy=True)
+    script = Path(__file__).resolve().parent / "eevee_render.py"
+    out = subprocess.run([sys.executable, str(script), str(blend), scene.name, str(tmp_path)], capture_output=True,
+                         text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    eevee, _, _ = read_exr(tmp_path / "BLENDER_EEVEE.exr", channels=["R", "G", "B"])
+    cycles, _, _ = read_exr(tmp_path / "CYCLES.exr", channels=["R", "G", "B"])
+    difference = np.abs(tonemap(eevee) - tonemap(cycles))
+    assert tonemap(cycles).max() > 0.3  # the picture is not empty
+    assert difference.mean() < 0.005, difference.mean()  # same nodes, two engines (measured 4e-4)
+    remove_bake(scene)
