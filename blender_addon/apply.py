@@ -6,8 +6,9 @@ whose nodes are replaced by the baked shading; the user's original material is n
 alive with a fake user while a bake refers to it. `remove_bake` puts the originals back into the slots and
 deletes what the bake made (copies, node group, image, lightmap UV layers and tile properties).
 
-Diffuse comes from an irradiance tile computed from the rendered light fields by quadrature (exact up to
-the light-field resolution and one texture lookup), not from the SGs: the bake measures both and reports
+Diffuse comes from an irradiance tile computed from the rendered light fields (plus the L_E*V images of the
+sky when IWEV holds the environment) by quadrature (exact up to the light-field resolution and one texture
+lookup), not from the SGs: the bake measures both and reports
 how far the SG irradiance is from it (report.json: apply.irradiance_from_sgs_rel_error).
 """
 from __future__ import annotations
@@ -83,13 +84,35 @@ def build_packed_image(out_dir: Path, plan) -> tuple[SGTextureLayout, Path, dict
     texels, images = read_images(out_dir / "lightfield", plan.stage_hash("render"))
     shading = channels(atlas, "N.X", 3)[texels[:, 0], texels[:, 1]].astype(np.float64)
     irradiance = irradiance_from_lightfields(images, shading)
+    if plan.environment.iwev:  # the light field leaves the sky to IWEV; diffuse still needs its light
+        sky_texels, sky = read_images(out_dir / "env_occluded", plan.stage_hash("render"))
+        if not np.array_equal(sky_texels, texels):
+            raise BakeInputError(f"{out_dir}: env_occluded and lightfield texels differ; render again")
+        irradiance = irradiance + irradiance_from_lightfields(sky, shading)
     r, c = texels[:, 0], texels[:, 1]
     from_sgs = sg_irradiance(axis[r, c].astype(np.float64), sharpness[r, c].astype(np.float64),
                              amplitude[r, c].astype(np.float64), shading[:, None, :]).sum(axis=1)
     lit = irradiance.sum(axis=1) > 1e-6 * max(irradiance.sum(axis=1).max(), 1e-30)
     rel = np.abs(from_sgs - irradiance).sum(axis=1)[lit] / irradiance.sum(axis=1)[lit]
-    layout = SGTextureLayout(n, has_irradiance=True, atlas_size=(shape[1], shape[0]))
+    iwev_count, env_sgs = 0, []
+    if plan.environment.iwev:
+        w_axis, w_sharpness, w_amplitude, w_meta = read_sg_texture(sg_texture_path(out_dir, "env_visibility"),
+                                                                   plan.stage_hash("train"))
+        iwev_count = int(w_meta["sg_count"])
+        env_path = out_dir / "env_sgs.json"
+        if not env_path.is_file():
+            raise BakeInputError(f"{out_dir}: no env_sgs.json; run the train stage again")
+        env = json.loads(env_path.read_text())
+        if env.get("plan_hash") != plan.stage_hash("train"):
+            raise BakeInputError(f"{env_path}: made for another plan; run the train stage again")
+        env_sgs = [tuple(sg) for sg in env["sgs"]]
+    layout = SGTextureLayout(n, iwev_count=iwev_count, has_irradiance=True, atlas_size=(shape[1], shape[0]))
     tiles = {}
+    for j in range(iwev_count):
+        amp = w_amplitude[..., j, :]
+        amp = np.repeat(amp, 3, axis=-1) if amp.shape[-1] == 1 else amp  # mono W_E: the same value in R, G, B
+        tiles[("iwev", j)] = np.concatenate([w_axis[..., j, :], encode_sharpness(w_sharpness[..., j])[..., None]], -1)
+        tiles[("iwev_amp", j)] = np.concatenate([amp, np.zeros(shape + (1,))], -1)
     for j in range(n):
         tiles[("sg", j)] = np.concatenate([axis[..., j, :], encode_sharpness(sharpness[..., j])[..., None]], -1)
         tiles[("amp", j)] = np.concatenate([amplitude[..., j, :], np.zeros(shape + (1,))], -1)
@@ -100,7 +123,7 @@ def build_packed_image(out_dir: Path, plan) -> tuple[SGTextureLayout, Path, dict
     measured = {"irradiance_from_sgs_rel_error_median": float(np.median(rel)) if len(rel) else 0.0,
                 "irradiance_from_sgs_rel_error_p95": float(np.percentile(rel, 95)) if len(rel) else 0.0,
                 "irradiance_from_sgs_rel_error_max": float(rel.max()) if len(rel) else 0.0}
-    return layout, path, measured
+    return layout, path, measured, env_sgs
 
 
 def _load_image(path: Path, pack: bool):
@@ -171,9 +194,9 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
     missing = [o.name for o in plan.baked_objects if scene.objects.get(o.name) is None]
     if missing:
         raise BakeInputError(f"objects {missing} of the plan are not in scene '{scene.name}'; make a new plan")
-    layout, path, measured = build_packed_image(out_dir, plan)
+    layout, path, measured, env_sgs = build_packed_image(out_dir, plan)
     image = _load_image(path, pack_images)
-    group = build_node_group(image, layout)
+    group = build_node_group(image, layout, env_sgs)
     record = json.loads(scene.get(BAKE_RECORD_KEY, "{}"))
     baked_materials = set()
     for object_plan in plan.baked_objects:

@@ -11,6 +11,7 @@ Passes (directories in the bake directory, see shaders/lightfield_tiles.py):
   env_radiance     the unoccluded environment L_E over the whole sphere (one block, many samples)
   env_visibility   W_E per texel (shaders/env_visibility.py) from an L_E*V render: world visible, every
                    surface a holdout (black), lamps left out, primary rays only.
+  env_occluded     those L_E*V images themselves (the diffuse irradiance from the sky needs them).
   midpoints        optional held-out light fields at midpoints between neighbouring texels.
 
 Lamps enter the light field as light sources the texel's rays can hit: copies of the lamps are made
@@ -384,6 +385,10 @@ def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: i
         write_index(kind_dir, index)
         mine = parse_share(share, len(tiles))
         done = [t for t in tiles if t.index in mine and tile_is_finished(kind_dir, index, t)]
+        if kind == "env_visibility":  # its L_E*V images are kept too: diffuse needs the sky's irradiance
+            occluded_index = TileIndex("env_occluded", plan_hash, resolution, settings.samples, 3, tiles)
+            write_index(out_dir / "env_occluded", occluded_index)
+            done = [t for t in done if tile_is_finished(out_dir / "env_occluded", occluded_index, t)]
         result.tiles_skipped[kind] = len(done)
         result.tiles_rendered[kind] = 0
         offset = 0
@@ -414,6 +419,10 @@ def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: i
                                              resolution, f"{kind}_{tile.index}")
                     render_seconds += time.perf_counter() - tick
                     post = time.perf_counter()
+                    pixels = np.nan_to_num(pixels, nan=0.0, posinf=0.0, neginf=0.0)
+                    write_exr(out_dir / "env_occluded" / tile.file, pixels, precision="half", channels=["R", "G", "B"],
+                              metadata={"plan_hash": plan_hash, "tile_hash": tile.hash, "resolution": resolution,
+                                        "samples": index.samples, "kind": "env_occluded"})
                     occluded = blocks_to_images(pixels, tile.columns, tile.rows, resolution, len(positions))
                     radiance = env_radiance
                     if index.channels == 1:

@@ -30,6 +30,9 @@ except ImportError:
 class NumpyOps:
     """Scalars (...,) and vectors (..., 3) as numpy arrays, with Blender node semantics."""
 
+    def barrier(self, value):
+        """Order hint for the node backend (later lookups wait for `value`); nothing to do in numpy."""
+
     def const(self, value):
         return np.float64(value)
 
@@ -189,6 +192,7 @@ def shade(ops, lookup, normal, view, roughness, f0, albedo, sg_count: int, iwev_
         axis, encoded = lookup("sg", j)
         amplitude, _ = lookup("amp", j)
         glossy = ops.vadd(glossy, convolve(ops, lobe, axis, decode_sharpness(ops, encoded), amplitude))
+        ops.barrier(glossy)
     factor = microfacet_factor(ops, lobe, f0)
     glossy = ops.vmul(glossy, factor)
     environment = black
@@ -201,6 +205,7 @@ def shade(ops, lookup, normal, view, roughness, f0, albedo, sg_count: int, iwev_
             axis, encoded = lookup("iwev", j)
             amplitude, _ = lookup("iwev_amp", j)
             visibility = ops.vadd(visibility, sg_value(ops, lobe["z"], axis, decode_sharpness(ops, encoded), amplitude))
+            ops.barrier(visibility)
         visibility = ops.vmax(ops.vmin(visibility, ops.vconst((1.0, 1.0, 1.0))), black)  # W_E in [0, 1]
         environment = ops.vmul(ops.vmul(env, factor), visibility)
     diffuse = black

@@ -54,12 +54,14 @@ def _parity_scene(group, width, height):
 
 def test_node_group_matches_its_numpy_reference_in_cycles(tmp_path):
     """Over a grid that includes the extremes: sharpness 1e-4..1e4, amplitudes 0..1e4, roughness 0 (floored)
-    to 1, grazing n.v; the stored (half-float) parameters feed the numpy reference."""
+    to 1, grazing n.v, with the environment term (global env SGs x W_E from IWEV SGs, clipped to [0, 1]);
+    the stored (half-float) parameters feed the numpy reference."""
     n, h, w = 3, 6, 6
     rng = np.random.default_rng(0)
     # Every parameter cell spans 2 x 2 identical texels and each pixel centre hits the middle of a cell, so the
     # node-side bilinear filter returns the cell's exact values despite Cycles' tiny pixel-filter jitter.
-    layout = SGTextureLayout(n, has_irradiance=True, atlas_size=(2 * w, 2 * h))
+    layout = SGTextureLayout(n, iwev_count=1, has_irradiance=True, atlas_size=(2 * w, 2 * h))
+    env_sgs = [((0.3, -0.2, 0.9), 4.0, (2.0, 1.5, 1.0)), ((-0.5, 0.5, 0.2), 40.0, (30.0, 20.0, 10.0))]
     cells = {}
     for j in range(n):
         sharpness = np.exp(rng.uniform(np.log(1e-4), np.log(1e4), (h, w)))
@@ -69,13 +71,15 @@ def test_node_group_matches_its_numpy_reference_in_cycles(tmp_path):
         amplitude[1, 0], amplitude[1, 1] = 0.0, 1e4
         cells[("amp", j)] = np.concatenate([amplitude, np.zeros((h, w, 1))], -1)
     cells[("irradiance", 0)] = np.concatenate([rng.uniform(0, 3, (h, w, 3)), np.ones((h, w, 1))], -1)
+    cells[("iwev", 0)] = np.concatenate([rng.normal(size=(h, w, 3)), rng.uniform(0, 1, (h, w, 1))], -1)
+    cells[("iwev_amp", 0)] = np.concatenate([rng.uniform(0, 1.2, (h, w, 3)), np.zeros((h, w, 1))], -1)
     tiles = {key: np.repeat(np.repeat(value, 2, axis=0), 2, axis=1) for key, value in cells.items()}
     path = write_exr(tmp_path / "packed.exr", pack_tiles(layout, tiles, (2 * h, 2 * w)), precision="half",
                      channels=["R", "G", "B", "A"])
     stored, _, _ = read_exr(path, channels=["R", "G", "B", "A"])
     image = bpy.data.images.load(str(path))
     image.colorspace_settings.name, image.alpha_mode = "Non-Color", "CHANNEL_PACKED"
-    group = build_node_group(image, layout, name="SG Lightfield parity")
+    group = build_node_group(image, layout, env_sgs, name="SG Lightfield parity")
     scene, node = _parity_scene(group, w, h)
     columns, rows = layout.grid
 
@@ -100,7 +104,7 @@ def test_node_group_matches_its_numpy_reference_in_cycles(tmp_path):
             reference = shade(NumpyOps(), lookup, np.broadcast_to(normal, (h, w, 3)),
                               np.broadcast_to((0.0, 0.0, 1.0), (h, w, 3)), np.full((h, w), roughness),
                               np.broadcast_to((0.04, 0.5, 1.0), (h, w, 3)), np.broadcast_to((0.8, 0.5, 0.2), (h, w, 3)),
-                              n)["total"]
+                              n, 1, env_sgs)["total"]
             worst = max(worst, float((np.abs(rendered - reference) / np.maximum(np.abs(reference), 1e-6)).max()))
     assert worst < 1e-3
 

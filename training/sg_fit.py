@@ -141,7 +141,8 @@ def lightfield_loss(params, target, normals, directions, solid_angles, below_wei
     there): the paper gives those directions no gradient, which leaves lobes there unconstrained, and a
     neighbour whose horizon differs sees them after interpolation."""
     prediction = predict(params, directions)
-    above = (directions * normals[:, None, None, :]).sum(-1) > 0
+    whole_sphere = (normals.abs().sum(-1) == 0)[:, None, None]  # a zero normal: no horizon (the environment)
+    above = ((directions * normals[:, None, None, :]).sum(-1) > 0) | whole_sphere
     weight = solid_angles[None] * torch.where(above, 1.0, below_weight)
     error = (torch.log1p(target) - torch.log1p(prediction.clamp_min(0))) ** 2
     total = (error.mean(dim=-1) * weight).sum()
@@ -401,7 +402,8 @@ def error_metrics(prediction: np.ndarray, target: np.ndarray, normals: np.ndarra
     resolution = target.shape[1]
     directions = centre_directions(resolution).numpy()
     weights = np.asarray(pixel_solid_angles(resolution).numpy(), np.float64)
-    above = np.einsum("rcx,tx->trc", directions, np.asarray(normals, np.float64)) > 0
+    normals = np.asarray(normals, np.float64)
+    above = (np.einsum("rcx,tx->trc", directions, normals) > 0) | (np.abs(normals).sum(-1) == 0)[:, None, None]
     w = (weights[None] * above)[..., None]
     total = w.sum() * target.shape[-1]
     log_error = (np.log1p(np.maximum(target, 0)) - np.log1p(np.maximum(prediction, 0))) ** 2

@@ -51,6 +51,34 @@ def midpoint_error(trainer_params, pairs_texels, texel_index, held_out, normals_
     return error_metrics(prediction, held_out, normals_mid)
 
 
+ENV_SGS_FILE = "env_sgs.json"
+ENV_SG_COUNT = 16
+ENV_FIT_SECONDS = 10.0
+
+
+def fit_environment_sgs(out_dir: Path, plan_hash: str, device: str = "cpu") -> dict:
+    """The environment (env_radiance.exr, the whole sphere) as ENV_SG_COUNT global SGs: the node group convolves
+    them with each texel's warped NDF and multiplies by the texel's W_E. Written to DIR/env_sgs.json."""
+    from shaders.exr_io import read_exr
+    from training.sg_fit import LightFieldData, TrainConfig, Trainer, error_metrics, reconstruct
+
+    radiance, _, _ = read_exr(out_dir / "env_radiance.exr", channels=["R", "G", "B"])
+    data = LightFieldData.from_numpy(radiance[None], np.zeros((1, 3)), device=device)  # zero normal: whole sphere
+    trainer = Trainer(data, TrainConfig(sg_count=ENV_SG_COUNT, time_budget_s=ENV_FIT_SECONDS, learning_rate=3e-2,
+                                        batch_texels=1, device=device), mode="per_texel")
+    trainer.train()
+    axis, sharpness, amplitude = (x[0] for x in trainer.parameters_numpy())
+    metrics = error_metrics(reconstruct(axis[None], sharpness[None], amplitude[None], radiance.shape[0]), radiance[None],
+                            np.zeros((1, 3)))
+    data_out = {"plan_hash": plan_hash, "sgs": [[a.tolist(), float(s), m.tolist()]
+                                                for a, s, m in zip(axis, sharpness, amplitude)],
+                "metrics": {k: round(v, 6) for k, v in metrics.items()}}
+    from shaders.bake_plan import write_json_atomic
+
+    write_json_atomic(out_dir / ENV_SGS_FILE, data_out)
+    return data_out
+
+
 def train_stage(out_dir, plan: BakePlan, *, progress=None, should_cancel=lambda: False, **options) -> TrainResult:
     """Train every kind the plan needs and write SG textures; resumable from DIR/train checkpoints."""
     return drive(train_steps(out_dir, plan, **options), progress, should_cancel,
@@ -123,6 +151,11 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
         result.epochs[kind] = state.epoch
         result.stopped_because[kind] = state.stopped_because
         result.bytes_per_texel += bytes_per_texel(sg_count, images.shape[-1])
+    if plan.environment.iwev:
+        yield 0.99, "environment SGs"
+        env = fit_environment_sgs(out_dir, plan_hash, device)
+        result.files.append(ENV_SGS_FILE)
+        result.metrics["environment"] = env["metrics"]
     result.seconds = time.perf_counter() - start
     update_report(out_dir, plan.stage_hash("capture"), timings_s={"train": result.seconds}, sg_count=sg_count,
                   bytes_per_texel=result.bytes_per_texel,
