@@ -21,7 +21,7 @@ class SGLightfieldSettings(bpy.types.PropertyGroup):
     preset: EnumProperty(name="Quality", items=PRESET_ITEMS, default="DRAFT")
     texel_density: FloatProperty(
         name="Texel Density", description="Light-field texels per metre of surface",
-        default=8.0, min=0.01, soft_max=256.0, max=4096.0)
+        default=8.0, min=1e-5, soft_min=0.1, soft_max=256.0, max=4096.0)
     lightfield_resolution: IntProperty(
         name="Light-Field Resolution", description="Octahedral light-field image size per texel",
         default=16, min=8, max=128)

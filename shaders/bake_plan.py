@@ -70,7 +70,7 @@ class BakeSettings:
 
     def validate(self):
         checks = [
-            (0.01 <= self.texel_density <= 4096, f"texel density {self.texel_density} texels/m is outside 0.01..4096"),
+            (1e-5 <= self.texel_density <= 4096, f"texel density {self.texel_density} texels/m is outside 1e-5..4096"),
             (8 <= self.lightfield_resolution <= 128,
              f"light-field resolution {self.lightfield_resolution} is outside 8..128"),
             (1 <= self.samples <= 65536, f"samples {self.samples} is outside 1..65536"),
