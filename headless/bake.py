@@ -93,10 +93,17 @@ class Reporter:
             return
         filled = int(round(24 * fraction))
         eta_text = "ETA --" if eta is None else f"ETA {eta:4.0f}s"
+        line = f"{stage:>8} [{'#' * filled}{'.' * (24 - filled)}] {100 * fraction:5.1f}% {eta_text}  {message[:48]:<48}"
+        if not self.stream.isatty():  # a log file: whole lines, one per tenth of the way
+            step = int(10 * fraction)
+            if step == getattr(self, "_last_step", -1) and fraction < 1:
+                return
+            self._last_step = step
+            print(line.rstrip(), file=self.stream, flush=True)
+            return
         end = "\n" if fraction >= 1 else ""
         self.bar_open = fraction < 1
-        print(f"\r{stage:>8} [{'#' * filled}{'.' * (24 - filled)}] {100 * fraction:5.1f}% {eta_text}  {message[:48]:<48}",
-              end=end, file=self.stream, flush=True)
+        print("\r" + line, end=end, file=self.stream, flush=True)
 
     def event(self, kind: str, **fields):
         if self.as_json:
