@@ -2,15 +2,16 @@
 PYTHON_BOOTSTRAP ?= python3.11
 VENV := .venv
 PY := $(VENV)/bin/python
-STAMP := $(VENV)/.installed-$(shell cksum requirements.txt | cut -d' ' -f1)
+STAMP := $(VENV)/.installed-$(shell cat requirements.txt requirements-extension.txt | cksum | cut -d' ' -f1)
 DEMO_OUT ?= bake_out/spheres
 
 .PHONY: demo test test-fast bench check-math extension clean
 
-$(STAMP): requirements.txt
+$(STAMP): requirements.txt requirements-extension.txt
 	$(PYTHON_BOOTSTRAP) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -r requirements.txt
+	$(PY) -m pip download --quiet --no-deps --only-binary=:all: -d $(VENV)/wheels -r requirements-extension.txt
 	rm -f $(VENV)/.installed-*
 	touch $(STAMP)
 

@@ -56,6 +56,11 @@ def test_extension_zip_installs_and_toggles_twice(tmp_path):
     names = set(__import__("zipfile").ZipFile(zip_path).namelist())
     assert {"blender_manifest.toml", "__init__.py", "blender_addon/ui.py", "shaders/sg_math.py"} <= names
     assert not any(n.startswith(("tests/", ".venv/", ".git/")) for n in names)
+    # The add-on's imports that Blender does not ship travel as wheels (make fetches them into .venv/wheels).
+    bundled = {n.split("/")[1].split("-")[0] for n in names if n.startswith("wheels/")}
+    assert bundled == {"openexr", "xatlas", "pillow"}
+    manifest = __import__("zipfile").ZipFile(zip_path).read("blender_manifest.toml").decode()
+    assert 'platforms = ["linux-x64"]' in manifest and manifest.count("./wheels/") == 3
     result = bpy.ops.extensions.package_install_files(filepath=str(zip_path), repo="user_default",
                                                       enable_on_install=True)
     assert result == {"FINISHED"}
