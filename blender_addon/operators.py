@@ -18,6 +18,9 @@ except ImportError:  # bpy as a module with the repository on sys.path
     from shaders.bake_plan import PRESETS, BakeCancelled, BakeInputError, BakeSettings
 
 _jobs = {}  # scene name -> running BakeJob (one bake per scene)
+# The modal bake renders small tiles so one step (one Cycles call) lasts about a second: Esc is honoured
+# between steps. ~0.25 M camera paths/s on 2 cores, half the pixels traced (the hemisphere cut).
+MODAL_STEP_PATHS = 0.5e6
 _cancel_requested = set()
 
 
@@ -61,9 +64,10 @@ class SGLF_OT_bake(bpy.types.Operator):
 
     def _start(self, context):
         panel = context.scene.sg_lightfield
-        job = BakeJob(context.scene, settings_from_panel(panel), bake_directory(panel),
-                      stages=("capture", "render", "train", "apply"),
-                      torch_python=torch_python_preference(context))
+        settings = settings_from_panel(panel)
+        tile_megapixels = min(max(MODAL_STEP_PATHS / settings.samples / 1e6, 0.002), 4.0)
+        job = BakeJob(context.scene, settings, bake_directory(panel), stages=("capture", "render", "train", "apply"),
+                      tile_megapixels=tile_megapixels, torch_python=torch_python_preference(context))
         _jobs[context.scene.name] = job
         _cancel_requested.discard(context.scene.name)
         panel.is_baking, panel.progress, panel.status = True, 0.0, job.plan.summary()

@@ -26,9 +26,10 @@ PRESETS = {
                        training_budget_s=1800.0),
 }
 
-# Rays per second of the atlas render on this machine class (DESIGN section 4: 4096 texels x 16^2 px x
-# 16 spp, upper hemisphere only, in 9.4 s on 2 cores). Replaced by the render benchmark's figure.
-ATLAS_RAYS_PER_SECOND_CPU = 4096 * 16 * 16 * 16 / 2 / 9.4
+# Camera paths per second of the atlas render on this machine class (2 cores), measured by `make bench` on
+# the closed `room` (12 bounces): 0.25 M/s. Open scenes run faster (DESIGN section 4 saw 0.9 M/s).
+ATLAS_RAYS_PER_SECOND_CPU = 0.25e6
+CYCLES_BYTES_PER_PIXEL = 64  # render buffers of one tile (combined pass, sample count, scratch)
 
 
 # Settings each stage's output depends on (cumulative: a stage also depends on the ones before it).
@@ -144,6 +145,14 @@ class BakePlan:
             rays += self.texels * r * r / 2  # one primary ray per pixel for L_E * V
         return rays / ATLAS_RAYS_PER_SECOND_CPU
 
+    def memory_estimate_mb(self, tile_megapixels: float = 4.0) -> dict:
+        """Disk for the bake directory and peak RAM (training holds every light field as float32)."""
+        r2 = self.settings.lightfield_resolution ** 2
+        passes = 3 if self.environment.iwev else 1  # light field, W_E, L_E*V
+        disk = self.texels * r2 * 3 * 2 * passes + self.texels * 2 * 7 * max(self.max_sg_count, 1) * passes
+        ram = self.texels * r2 * 3 * 4 + tile_megapixels * 1e6 * CYCLES_BYTES_PER_PIXEL
+        return {"disk_mb": round(disk / 1e6, 1), "ram_mb": round(ram / 1e6, 1)}
+
     def summary(self) -> str:
         glossy = len(self.baked_objects)
         parts = [f"{glossy} glossy object{'s' if glossy != 1 else ''}",
@@ -152,6 +161,8 @@ class BakePlan:
                  f"hair {'offered' if self.hair_objects else 'off'}",
                  f"{self.texels} texels", f"render ~{self.render_estimate_s():.0f} s",
                  f"training <= {self.settings.training_budget_s:.0f} s"]
+        memory = self.memory_estimate_mb()
+        parts.append(f"~{memory['disk_mb']:g} MB on disk, ~{memory['ram_mb']:g} MB RAM")
         return ", ".join(parts)
 
     def to_dict(self) -> dict:
@@ -159,6 +170,7 @@ class BakePlan:
         data["summary"] = self.summary()
         data["texels"] = self.texels
         data["render_estimate_s"] = round(self.render_estimate_s(), 3)
+        data["memory_estimate_mb"] = self.memory_estimate_mb()
         data["hash"] = self.content_hash()
         return data
 
