@@ -39,18 +39,11 @@ def addon():
     blender_addon.unregister()
 
 
-def _tiny(scene, tmp_path):
-    panel = scene.sg_lightfield
-    panel.preset = "CUSTOM"
-    panel.texel_density, panel.lightfield_resolution, panel.samples = 2.0, 8, 4
-    panel.sg_count_auto, panel.sg_count, panel.training_budget_s = False, 2, 2.0
-    panel.output_dir = str(tmp_path / "bake")
-
-
-def test_operator_bakes_spheres_end_to_end_and_remove_restores(addon, tmp_path):
+def test_operator_bakes_spheres_at_draft_end_to_end_and_remove_restores(addon, tmp_path):
     scene = build_demo_scene("demo:spheres")
     with active_scene(scene):
-        _tiny(scene, tmp_path)
+        scene.sg_lightfield.preset = "DRAFT"  # the real preset: about a minute, most of it the training budget
+        scene.sg_lightfield.output_dir = str(tmp_path / "bake")
         before = scene_fingerprint(scene)
         assert bpy.ops.sg_lightfield.bake() == {"FINISHED"}
         baked = [s.material.name for o in scene.objects for s in o.material_slots if s.material]
