@@ -218,6 +218,7 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
             copy = _baked_material(original, group, principled_surface(original))
             slot.material = copy
             slots[str(index)] = original.name
+            scene[BAKE_RECORD_KEY] = json.dumps(record)  # recorded at once: an interrupted apply can be undone
             baked_materials.add(copy.name)
     scene[BAKE_RECORD_KEY] = json.dumps(record)
     seconds = time.perf_counter() - start

@@ -21,12 +21,12 @@ from pathlib import Path
 try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
     from . import apply as apply_module
-    from .capture import capture, remove_lightmap_uvs
+    from .capture import LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, capture, remove_lightmap_uvs
     from .render import render_steps
     from .scene_analysis import build_plan
 except ImportError:  # bpy as a module with the repository on sys.path
     from blender_addon import apply as apply_module
-    from blender_addon.capture import capture, remove_lightmap_uvs
+    from blender_addon.capture import LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, capture, remove_lightmap_uvs
     from blender_addon.render import render_steps
     from blender_addon.scene_analysis import build_plan
     from shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
@@ -113,9 +113,47 @@ class BakeJob:
         if self._worker is not None:
             self._worker.terminate()
             self._worker.wait(timeout=10)
+        if self.current_stage == "apply" and not self._applied:
+            apply_module.remove_bake(self.scene)  # undo the slots a failed or stopped apply already switched
         if self._captured_here and not self._applied:
-            remove_lightmap_uvs(self.scene)
+            self._restore_lightmaps()
         self.done = True
+
+    def _snapshot_lightmaps(self):
+        """What capture will overwrite: each mesh's SGLightmap layer (when an earlier bake made one) and each
+        object's tile properties, so a cancel can put back a previous bake exactly."""
+        import numpy as np
+
+        snapshot = {"meshes": {}, "objects": {}}
+        for obj in self.scene.objects:
+            if obj.type != "MESH":
+                continue
+            snapshot["objects"][obj.name] = {k: list(obj[k]) for k in (OFFSET_KEY, SCALE_KEY) if k in obj}
+            layer = obj.data.uv_layers.get(LIGHTMAP_LAYER)
+            if layer is not None and obj.data.name not in snapshot["meshes"]:
+                uv = np.empty(len(obj.data.loops) * 2, np.float32)
+                layer.uv.foreach_get("vector", uv)
+                snapshot["meshes"][obj.data.name] = uv
+        return snapshot
+
+    def _restore_lightmaps(self):
+        snapshot = self._lightmap_snapshot
+        if not snapshot["meshes"]:
+            remove_lightmap_uvs(self.scene)  # nothing was baked before: the scene had no lightmap data at all
+            return
+        for obj in self.scene.objects:
+            if obj.type != "MESH":
+                continue
+            saved = snapshot["objects"].get(obj.name, {})
+            for key in (OFFSET_KEY, SCALE_KEY):
+                if key in saved:
+                    obj[key] = saved[key]
+                elif key in obj:
+                    del obj[key]
+            uv = snapshot["meshes"].get(obj.data.name)
+            layer = obj.data.uv_layers.get(LIGHTMAP_LAYER)
+            if uv is not None and layer is not None and len(uv) == 2 * len(obj.data.loops):
+                layer.uv.foreach_set("vector", uv)
 
     # --- stages ---------------------------------------------------------------------------------------
     def _overall(self, stage, fraction):
@@ -134,6 +172,7 @@ class BakeJob:
 
     def _capture(self):
         yield "capture", self._overall("capture", 0.0), "lightmap UVs and texel maps"
+        self._lightmap_snapshot = self._snapshot_lightmaps()
         self._captured_here = True
         return capture(self.scene, self.plan, self.out_dir, lightmap_uv_layer=self.options["lightmap_uv"])
 

@@ -17,6 +17,10 @@ DEVICE_ITEMS = (
 )
 
 
+# Blender 4.5+ asks path properties to declare that "//" (relative to the .blend) is meant; 4.2 lacks the option.
+_BLEND_RELATIVE = {"PATH_SUPPORTS_BLEND_RELATIVE"} if bpy.app.version >= (4, 5, 0) else set()
+
+
 class SGLightfieldSettings(bpy.types.PropertyGroup):
     preset: EnumProperty(name="Quality", items=PRESET_ITEMS, default="DRAFT")
     texel_density: FloatProperty(
@@ -34,7 +38,8 @@ class SGLightfieldSettings(bpy.types.PropertyGroup):
                                      default=300.0, min=1.0, subtype="TIME_ABSOLUTE", unit="TIME_ABSOLUTE")
     device: EnumProperty(name="Device", items=DEVICE_ITEMS, default="CPU")
     output_dir: StringProperty(name="Bake Directory", description="Where the bake writes its files",
-                               default="//sg_bake", subtype="DIR_PATH")
+                               default="//sg_bake", subtype="DIR_PATH",
+                               options=_BLEND_RELATIVE)
     # Progress shown by the panel while a bake runs (written by the operator, read by the UI).
     is_baking: BoolProperty(default=False, options={"SKIP_SAVE"})
     progress: FloatProperty(default=0.0, min=0.0, max=1.0, subtype="FACTOR", options={"SKIP_SAVE"})

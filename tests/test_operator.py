@@ -99,3 +99,20 @@ def test_training_in_a_worker_process_as_inside_blender(tmp_path):
     fractions = [f for s, f, _ in messages if s == "train"]
     assert fractions == sorted(fractions) and any("epoch" in m for s, _, m in messages if s == "train")
     remove_bake(scene)
+
+
+def test_cancelling_a_rebake_puts_the_previous_bake_back(tmp_path):
+    scene = build_demo_scene("demo:spheres")
+    first = BakeSettings.from_preset("draft", texel_density=2.0, lightfield_resolution=8, samples=2, sg_count=2,
+                                     training_budget_s=1.0)
+    BakeJob(scene, first, tmp_path / "a", stages=("capture", "render", "train", "apply")).run()
+    baked = scene_fingerprint(scene)
+    second = BakeSettings.from_preset("draft", texel_density=5.0, lightfield_resolution=8, samples=2, sg_count=2,
+                                      training_budget_s=1.0)  # another density: capture rewrites the lightmap
+    job = BakeJob(scene, second, tmp_path / "b", stages=("capture", "render", "train", "apply"))
+    while job.step()[0] != "render":
+        pass
+    assert scene_fingerprint(scene) != baked
+    job.cancel()
+    assert scene_fingerprint(scene) == baked  # the first bake's lightmap UVs and tiles are back
+    remove_bake(scene)
