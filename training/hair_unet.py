@@ -114,7 +114,8 @@ def hair_loss(prediction: torch.Tensor, target: torch.Tensor, gradient_weight: f
 
 
 def export_onnx(model: HairUNet, path, height: int = 64, width: int = 64, opset: int = 17):
-    """Export with dynamic batch and image size; returns the path."""
+    """Export with dynamic batch and image size; returns the path. Uses torch's TorchScript exporter: the newer
+    torch.export one needs the onnxscript package, which nothing else here needs."""
     model.eval()
     dummy = torch.zeros((1, model.config.in_channels, height, width))
     torch.onnx.export(model, dummy, str(path), input_names=["features"], output_names=["outputs"], opset_version=opset,
