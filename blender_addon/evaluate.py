@@ -133,7 +133,9 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144
     finally:
         for camera, temporary in cameras:
             if temporary:
+                data = camera.data
                 bpy.data.objects.remove(camera)
+                bpy.data.cameras.remove(data)
         render.engine, render.resolution_x, render.resolution_y = saved["engine"], saved["x"], saved["y"]
         render.resolution_percentage, render.filepath = saved["pct"], saved["path"]
         render.image_settings.file_format, render.image_settings.color_depth = saved["fmt"], saved["depth"]

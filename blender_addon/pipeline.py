@@ -14,6 +14,7 @@ import queue
 import shutil
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -208,8 +209,9 @@ class BakeJob:
         if python is None:
             raise BakeInputError(TORCH_HELP)
         env = {**os.environ, "PYTHONPATH": str(REPO_ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+        errors = tempfile.TemporaryFile(mode="w+")  # a file, not a pipe: a chatty worker can never block on it
         self._worker = subprocess.Popen([python, "-m", "training.train_stage", "--out", str(self.out_dir), "--json"],
-                                        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                                        stdout=subprocess.PIPE, stderr=errors, text=True, env=env,
                                         cwd=str(REPO_ROOT))
         lines: queue.Queue = queue.Queue()
         reader = threading.Thread(target=lambda: [lines.put(line) for line in self._worker.stdout], daemon=True)
@@ -229,8 +231,10 @@ class BakeJob:
             elif event.get("event") == "stage":
                 result = event
         if self._worker.returncode != 0:
-            error = self._worker.stderr.read().strip().splitlines()
+            errors.seek(0)
+            error = errors.read().strip().splitlines()
             raise BakeInputError(error[-1].removeprefix("error: ") if error else "the training worker failed")
+        errors.close()
         self._worker = None
         return result
 
