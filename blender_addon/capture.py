@@ -35,9 +35,11 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.texel_maps import (CAPTURE_PICTURES, FLAG_BURIED, FLAG_CENTRE_INSIDE, FLAG_COVERED, FLAG_GUTTER,
                                       FLAG_PUSHED_OUT, TEXEL_CHANNELS, TEXELS_FILE, TEXELS_JSON, save_capture_pictures)
     from ..shaders.texel_raster import centre_overlap_count, dilate, rasterize, shelf_pack
-    from .scene_analysis import active_scene, principled_surface, unbaked
+    from .scene_analysis import (active_scene, loop_triangle_arrays, principled_surface, transform_points,
+                                 triangle_areas, unbaked)
 except ImportError:  # bpy as a module with the repository on sys.path
-    from blender_addon.scene_analysis import active_scene, principled_surface, unbaked
+    from blender_addon.scene_analysis import (active_scene, loop_triangle_arrays, principled_surface,
+                                              transform_points, triangle_areas, unbaked)
     from shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
     from shaders.bake_report import update_report
     from shaders.exr_io import write_exr
@@ -94,30 +96,6 @@ def _noop_progress(fraction, message):
     pass
 
 
-def _loop_triangle_arrays(mesh):
-    mesh.calc_loop_triangles()
-    count = len(mesh.loop_triangles)
-    loops = np.empty(count * 3, np.int64)
-    verts = np.empty(count * 3, np.int64)
-    mat_index = np.empty(count, np.int64)
-    mesh.loop_triangles.foreach_get("loops", loops)
-    mesh.loop_triangles.foreach_get("vertices", verts)
-    mesh.loop_triangles.foreach_get("material_index", mat_index)
-    coords = np.empty(len(mesh.vertices) * 3, np.float64)
-    mesh.vertices.foreach_get("co", coords)
-    return loops.reshape(-1, 3), verts.reshape(-1, 3), mat_index, coords.reshape(-1, 3)
-
-
-def _transform(matrix, points):
-    m = np.array(matrix, dtype=np.float64)
-    return points @ m[:3, :3].T + m[:3, 3]
-
-
-def _triangle_areas(points, verts):
-    a, b, c = (points[verts[:, k]] for k in range(3))
-    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-
-
 def _texel_scale(obj) -> float:
     value = obj.get(TEXEL_SCALE_KEY, 1.0)
     try:
@@ -129,11 +107,11 @@ def _texel_scale(obj) -> float:
     return value
 
 
-def _xatlas_layout(mesh, texels_per_unit: float):
-    """Chart and pack one mesh (object space) with xatlas; returns loop UVs (L, 2) in [0, 1], size, conflicts."""
+def _xatlas_layout(mesh, loops, verts, coords, texels_per_unit: float):
+    """Chart and pack one mesh (object space, its loop_triangle_arrays) with xatlas; returns loop UVs (L, 2) in
+    [0, 1], the layout size in texels and the count of triangles whose loops got conflicting UVs."""
     import xatlas
 
-    loops, verts, _, coords = _loop_triangle_arrays(mesh)
     atlas = xatlas.Atlas()
     atlas.add_mesh(coords.astype(np.float32), verts.astype(np.uint32))
     pack = xatlas.PackOptions()
@@ -194,13 +172,13 @@ def remove_lightmap_uvs(scene) -> int:
     return removed
 
 
-def _validate_user_layer(obj, layer_name, world_area, density):
-    """A user-chosen lightmap layer must exist, stay inside [0, 1] and not overlap; returns its tile side."""
+def _validate_user_layer(obj, loops, layer_name, world_area, density):
+    """A user-chosen lightmap layer must exist, stay inside [0, 1] and not overlap; returns its tile side.
+    `loops` are the mesh's loop-triangle loops (loop_triangle_arrays)."""
     mesh = obj.data
     if mesh.uv_layers.get(layer_name) is None:
         raise BakeInputError(f"'{obj.name}': has no UV layer '{layer_name}' to use as the lightmap layer "
                              f"(it has: {', '.join(mesh.uv_layers.keys()) or 'none'})")
-    loops, verts, _, coords = _loop_triangle_arrays(mesh)
     uv = _layer_uvs(mesh, layer_name)[loops]
     if not np.all(np.isfinite(uv)) or uv.min() < -1e-6 or uv.max() > 1 + 1e-6:
         raise BakeInputError(f"'{obj.name}': UV layer '{layer_name}' leaves the [0, 1] square "
@@ -254,17 +232,18 @@ def _plan_layout(objects, settings, lightmap_uv_layer, warnings):
     sizes, pending = [], []
     for mesh_name, users in groups.items():
         mesh = users[0].data
-        loops, verts, _, coords = _loop_triangle_arrays(mesh)
-        local_area = float(_triangle_areas(coords, verts).sum())
+        loops, verts, _, coords = loop_triangle_arrays(mesh)
+        local_area = float(triangle_areas(coords, verts).sum())
         if local_area <= 0:
             raise BakeInputError(f"'{users[0].name}': mesh '{mesh_name}' has no faces with area")
         densities = []  # texels per object-space unit, per instance
         for obj in users:
-            world_area = float(_triangle_areas(_transform(obj.matrix_world, coords), verts).sum())
+            world_area = float(triangle_areas(transform_points(obj.matrix_world, coords), verts).sum())
             densities.append(settings.texel_density * _texel_scale(obj) * math.sqrt(world_area / local_area))
         if lightmap_uv_layer:
-            sides = [_validate_user_layer(obj, lightmap_uv_layer, local_area * (d / settings.texel_density) ** 2,
-                                          settings.texel_density) for obj, d in zip(users, densities)]
+            sides = [_validate_user_layer(obj, loops, lightmap_uv_layer,
+                                          local_area * (d / settings.texel_density) ** 2, settings.texel_density)
+                     for obj, d in zip(users, densities)]
             for obj, side in zip(users, sides):
                 pending.append((obj, lightmap_uv_layer))
                 sizes.append((side, side))
@@ -274,7 +253,7 @@ def _plan_layout(objects, settings, lightmap_uv_layer, warnings):
             raise BakeInputError(f"'{users[0].name}' would need {local_area * reference**2:.3g} texels at "
                                  f"{settings.texel_density:g} texels/m; lower the texel density or its "
                                  f"{TEXEL_SCALE_KEY}")
-        loop_uv, (width, height), conflicts = _xatlas_layout(mesh, reference)
+        loop_uv, (width, height), conflicts = _xatlas_layout(mesh, loops, verts, coords, reference)
         if conflicts:
             warnings.append(f"mesh '{mesh_name}': {conflicts} n-gon triangle(s) were split across charts; "
                             "triangulate those faces for a clean lightmap")
@@ -304,8 +283,8 @@ def _scene_bvh(scene, depsgraph):
         evaluated = obj.evaluated_get(depsgraph)
         mesh = evaluated.to_mesh()
         try:
-            _, verts, _, coords = _loop_triangle_arrays(mesh)
-            world = _transform(evaluated.matrix_world, coords)
+            _, verts, _, coords = loop_triangle_arrays(mesh)
+            world = transform_points(evaluated.matrix_world, coords)
             if np.linalg.det(np.array(evaluated.matrix_world)[:3, :3]) < 0:
                 verts = verts[:, ::-1]
             vertices.append(world)
@@ -388,7 +367,7 @@ def _rasterize_object(obj, tile, depsgraph, material_ids, atlas_w, atlas_h, maps
     try:
         if mesh.uv_layers.get(tile.uv_layer) is None:
             raise BakeInputError(f"'{obj.name}': a modifier removed the lightmap UV layer '{tile.uv_layer}'")
-        loops, verts, mat_index, coords = _loop_triangle_arrays(mesh)
+        loops, verts, mat_index, coords = loop_triangle_arrays(mesh)
         uv = _layer_uvs(mesh, tile.uv_layer)[loops]
         normals = np.empty(len(mesh.loops) * 3, np.float64)
         mesh.corner_normals.foreach_get("vector", normals)
@@ -396,7 +375,7 @@ def _rasterize_object(obj, tile, depsgraph, material_ids, atlas_w, atlas_h, maps
     finally:
         evaluated.to_mesh_clear()
     matrix = np.array(evaluated.matrix_world, dtype=np.float64)
-    world = _transform(matrix, coords)[verts]  # (T, 3, 3)
+    world = transform_points(matrix, coords)[verts]  # (T, 3, 3)
     flip = -1.0 if np.linalg.det(matrix[:3, :3]) < 0 else 1.0
     face = flip * np.cross(world[:, 1] - world[:, 0], world[:, 2] - world[:, 0])
     world_area = 0.5 * np.linalg.norm(face, axis=1)

@@ -197,9 +197,7 @@ class SGLF_OT_show_plan(bpy.types.Operator):
             panel.plan_text = f"! {exc}"
             self.report({"ERROR"}, f"SG Lightfield: {exc}")
             return {"CANCELLED"}
-        lines = [plan.summary()]
-        lines += [f"{o.name}: {'bake' if o.bake_lightfield else 'skip'} ({o.reason})" for o in plan.objects]
-        lines += [f"environment: {plan.environment.reason}"] + [f"! {w}" for w in plan.warnings]
+        lines = [plan.summary(), *plan.decisions(), *(f"! {w}" for w in plan.warnings)]
         panel.plan_text = "\n".join(lines)
         return {"FINISHED"}
 

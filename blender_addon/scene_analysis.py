@@ -115,21 +115,39 @@ def _is_emissive(material) -> bool:
     return (linked_s or strength > 0) and (linked_c or max(color[:3]) > 0)
 
 
+def loop_triangle_arrays(mesh):
+    """(loops (T, 3), vertices (T, 3), material index (T,), vertex coordinates (V, 3)) of a mesh's triangles."""
+    mesh.calc_loop_triangles()
+    count = len(mesh.loop_triangles)
+    loops = np.empty(count * 3, np.int64)
+    verts = np.empty(count * 3, np.int64)
+    mat_index = np.empty(count, np.int64)
+    mesh.loop_triangles.foreach_get("loops", loops)
+    mesh.loop_triangles.foreach_get("vertices", verts)
+    mesh.loop_triangles.foreach_get("material_index", mat_index)
+    coords = np.empty(len(mesh.vertices) * 3, np.float64)
+    mesh.vertices.foreach_get("co", coords)
+    return loops.reshape(-1, 3), verts.reshape(-1, 3), mat_index, coords.reshape(-1, 3)
+
+
+def transform_points(matrix, points):
+    m = np.array(matrix, dtype=np.float64)
+    return points @ m[:3, :3].T + m[:3, 3]
+
+
+def triangle_areas(points, verts):
+    a, b, c = (points[verts[:, k]] for k in range(3))
+    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+
+
 def _world_area(obj, depsgraph) -> float:
     evaluated = obj.evaluated_get(depsgraph)
     mesh = evaluated.to_mesh()
     try:
         if len(mesh.polygons) == 0:
             return 0.0
-        mesh.calc_loop_triangles()
-        coords = np.empty(len(mesh.vertices) * 3, np.float64)
-        mesh.vertices.foreach_get("co", coords)
-        tris = np.empty(len(mesh.loop_triangles) * 3, np.int64)
-        mesh.loop_triangles.foreach_get("vertices", tris)
-        matrix = np.array(obj.matrix_world, dtype=np.float64)
-        world = coords.reshape(-1, 3) @ matrix[:3, :3].T + matrix[:3, 3]
-        a, b, c = (world[tris.reshape(-1, 3)[:, k]] for k in range(3))
-        return float(0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
+        _, verts, _, coords = loop_triangle_arrays(mesh)
+        return float(triangle_areas(transform_points(obj.matrix_world, coords), verts).sum())
     finally:
         evaluated.to_mesh_clear()
 

@@ -149,18 +149,6 @@ def load_scene(ns):
     return scene
 
 
-def plan_decisions(plan) -> list[str]:
-    lines = []
-    for obj in plan.objects:
-        lines.append(f"{obj.name}: {'bake' if obj.bake_lightfield else 'skip'} ({obj.reason}; {obj.texels} texels)")
-    env = plan.environment
-    lines.append(f"environment: {env.reason}")
-    if plan.lamps or plan.emissive_objects:
-        lines.append(f"light sources: lamps {plan.lamps or 'none'}, emissive meshes {plan.emissive_objects or 'none'}")
-    lines.append("hair: " + (f"filter offered for {plan.hair_objects}" if plan.hair_objects else "no hair curves"))
-    return lines
-
-
 def stage_summary(stage: str, result, plan) -> tuple[str, list]:
     """One line per finished stage for people (and the JSON 'stage' event)."""
     if stage == "capture":
@@ -208,7 +196,7 @@ def run(ns, reporter: Reporter) -> int:
                   pack_images=not ns.external_images)
     plan, data = job.plan, job.plan.to_dict()
     reporter.event("plan", summary=data["summary"], hash=data["hash"], texels=data["texels"],
-                   decisions=plan_decisions(plan), warnings=plan.warnings, path=str(out / "plan.json"))
+                   decisions=plan.decisions(), warnings=plan.warnings, path=str(out / "plan.json"))
     if ns.plan_only:
         reporter.event("done", message=f"plan written to {out / 'plan.json'}", ok=True)
         return 0

@@ -145,6 +145,17 @@ class BakePlan:
             rays += self.texels * r * r / 2  # one primary ray per pixel for L_E * V
         return rays / ATLAS_RAYS_PER_SECOND_CPU
 
+    def decisions(self) -> list[str]:
+        """What the bake models and why, one line each: what the CLI prints, the panel and the report show."""
+        lines = [f"{o.name}: {'bake' if o.bake_lightfield else 'skip'} ({o.reason}; {o.texels} texels)"
+                 for o in self.objects]
+        lines.append(f"environment: {self.environment.reason}")
+        if self.lamps or self.emissive_objects:
+            lines.append(f"light sources: lamps {self.lamps or 'none'}, "
+                         f"emissive meshes {self.emissive_objects or 'none'}")
+        lines.append("hair: " + (f"filter offered for {self.hair_objects}" if self.hair_objects else "no hair curves"))
+        return lines
+
     def memory_estimate_mb(self, tile_megapixels: float = 4.0) -> dict:
         """Disk for the bake directory and peak RAM (training holds every light field as float32)."""
         r2 = self.settings.lightfield_resolution ** 2
@@ -171,6 +182,7 @@ class BakePlan:
         data["texels"] = self.texels
         data["render_estimate_s"] = round(self.render_estimate_s(), 3)
         data["memory_estimate_mb"] = self.memory_estimate_mb()
+        data["decisions"] = self.decisions()
         data["hash"] = self.content_hash()
         return data
 

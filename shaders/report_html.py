@@ -32,11 +32,8 @@ def write_report_html(out_dir) -> Path:
              "text-align:left}table{border-collapse:collapse}tr:nth-child(even){background:#f3f3f3}</style>",
              f"<h1>SG Lightfield bake: {esc(plan.get('scene', ''))}</h1>",
              f"<p><b>Plan:</b> {esc(plan.get('summary', ''))}</p><ul>"]
-    for obj in plan.get("objects", []):
-        parts.append(f"<li>{esc(obj['name'])}: {'bake' if obj['bake_lightfield'] else 'skip'} "
-                     f"({esc(obj['reason'])}; {obj['texels']} texels planned)</li>")
-    env = plan.get("environment", {})
-    parts.append(f"<li>environment: {esc(env.get('reason', ''))}</li></ul>")
+    parts += [f"<li>{esc(line)}</li>" for line in plan.get("decisions", [])]
+    parts.append("</ul>")
     for warning in plan.get("warnings", []):
         parts.append(f"<p>&#9888; {esc(warning)}</p>")
     parts.append("<h2>Numbers</h2><table>")
