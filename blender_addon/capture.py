@@ -34,7 +34,7 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.exr_io import write_exr
     from ..shaders.texel_maps import (CAPTURE_PICTURES, FLAG_BURIED, FLAG_CENTRE_INSIDE, FLAG_COVERED, FLAG_GUTTER,
                                       FLAG_PUSHED_OUT, TEXEL_CHANNELS, TEXELS_FILE, TEXELS_JSON, save_capture_pictures)
-    from ..shaders.texel_raster import centre_overlap_count, dilate, rasterize, shelf_pack
+    from ..shaders.texel_raster import centre_overlap_count, dilate, rasterize, shelf_pack, signed_areas
     from .scene_analysis import (active_scene, loop_triangle_arrays, principled_surface, transform_points,
                                  triangle_areas, unbaked)
 except ImportError:  # bpy as a module with the repository on sys.path
@@ -45,7 +45,7 @@ except ImportError:  # bpy as a module with the repository on sys.path
     from shaders.exr_io import write_exr
     from shaders.texel_maps import (CAPTURE_PICTURES, FLAG_BURIED, FLAG_CENTRE_INSIDE, FLAG_COVERED, FLAG_GUTTER,
                                     FLAG_PUSHED_OUT, TEXEL_CHANNELS, TEXELS_FILE, TEXELS_JSON, save_capture_pictures)
-    from shaders.texel_raster import centre_overlap_count, dilate, rasterize, shelf_pack
+    from shaders.texel_raster import centre_overlap_count, dilate, rasterize, shelf_pack, signed_areas
 
 LIGHTMAP_LAYER = "SGLightmap"
 OWNER_KEY = "sglf_lightmap_layer"  # on a mesh: the name of the UV layer SG Lightfield made there
@@ -183,8 +183,7 @@ def _validate_user_layer(obj, loops, layer_name, world_area, density):
     if not np.all(np.isfinite(uv)) or uv.min() < -1e-6 or uv.max() > 1 + 1e-6:
         raise BakeInputError(f"'{obj.name}': UV layer '{layer_name}' leaves the [0, 1] square "
                              f"(range {uv.min():.3f}..{uv.max():.3f}); a lightmap layout must stay inside it")
-    e1, e2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
-    uv_area = float(np.abs(0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])).sum())
+    uv_area = float(np.abs(signed_areas(uv)).sum())
     if uv_area <= 1e-12:
         raise BakeInputError(f"'{obj.name}': UV layer '{layer_name}' has no area")
     side = int(np.clip(math.ceil(math.sqrt(world_area * density**2 / uv_area)), 4, MAX_ATLAS_SIDE))
@@ -381,8 +380,7 @@ def _rasterize_object(obj, tile, depsgraph, material_ids, atlas_w, atlas_h, maps
     world_area = 0.5 * np.linalg.norm(face, axis=1)
     x, y, w, h = tile.pixel_rect
     px = np.stack([x + uv[..., 0] * w, y + (1 - uv[..., 1]) * h], axis=-1)
-    e1, e2 = px[:, 1] - px[:, 0], px[:, 2] - px[:, 0]
-    px_area = np.abs(0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]))
+    px_area = np.abs(signed_areas(px))
     usable = (world_area > 1e-20) & (px_area > 1e-12)
     degenerate = np.where(~usable[:, None, None], np.nan, 0.0)
     claimed = centre_overlap_count(px[usable], atlas_w, atlas_h)

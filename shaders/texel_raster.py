@@ -36,6 +36,28 @@ class Raster:
         return self.triangle >= 0
 
 
+def signed_areas(tri: np.ndarray) -> np.ndarray:
+    """Signed areas of 2D triangles (T, 3, 2); positive for counter-clockwise corners."""
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    return 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+
+
+def _usable_triangles(tri_px: np.ndarray):
+    """The triangles worth rasterising (finite, more than MIN_UV_AREA_TEXELS of area): their indices, corners,
+    edge vectors (corner k to k+1) and orientation signs."""
+    signed = signed_areas(tri_px)
+    usable = (np.abs(signed) > MIN_UV_AREA_TEXELS) & np.all(np.isfinite(tri_px.reshape(-1, 6)), axis=1)
+    index = np.flatnonzero(usable)
+    tri_px = tri_px[index]
+    return index, tri_px, np.roll(tri_px, -1, axis=1) - tri_px, np.sign(signed[index])
+
+
+def _inward_normal(edges, sign, tri, k):
+    """Normal of edge k of each candidate's triangle, pointing into the triangle (not unit length)."""
+    e = edges[tri, k]
+    return sign[tri, None] * np.stack([-e[:, 1], e[:, 0]], axis=-1)
+
+
 def _candidate_pairs(tri_px: np.ndarray, width: int, height: int):
     lo = np.floor(tri_px.min(axis=1)).astype(np.int64)
     hi = np.floor(tri_px.max(axis=1)).astype(np.int64)
@@ -126,14 +148,9 @@ def rasterize(tri_px: np.ndarray, width: int, height: int) -> Raster:
     centre_inside = np.zeros((height, width), bool)
     distance = np.full((height, width), np.inf)
     result = Raster(triangle, barycentric, centre_inside, distance)
-    edges = np.roll(tri_px, -1, axis=1) - tri_px
-    signed_area = 0.5 * (edges[:, 0, 0] * edges[:, 1, 1] - edges[:, 0, 1] * edges[:, 1, 0])
-    usable = np.abs(signed_area) > MIN_UV_AREA_TEXELS
-    usable &= np.all(np.isfinite(tri_px.reshape(-1, 6)), axis=1)
-    if not np.any(usable):
+    index, tri_px, edges, sign = _usable_triangles(tri_px)
+    if len(index) == 0:
         return result
-    index = np.flatnonzero(usable)
-    tri_px, edges, sign = tri_px[index], edges[index], np.sign(signed_area[index])
     tri, row, col = _candidate_pairs(tri_px, width, height)
     if len(tri) == 0:
         return result
@@ -142,8 +159,7 @@ def rasterize(tri_px: np.ndarray, width: int, height: int) -> Raster:
     tmin, tmax = tri_px.min(axis=1)[tri], tri_px.max(axis=1)[tri]
     overlap = (col < tmax[:, 0]) & (col + 1 > tmin[:, 0]) & (row < tmax[:, 1]) & (row + 1 > tmin[:, 1])
     for k in range(3):
-        e = edges[tri, k]
-        normal = sign[tri, None] * np.stack([-e[:, 1], e[:, 0]], axis=-1)
+        normal = _inward_normal(edges, sign, tri, k)
         reach = 0.5 * (np.abs(normal[:, 0]) + np.abs(normal[:, 1]))
         overlap &= ((centre - tri_px[tri, k]) * normal).sum(-1) + reach > 0
     tri, row, col, centre = tri[overlap], row[overlap], col[overlap], centre[overlap]
@@ -176,18 +192,14 @@ def centre_overlap_count(tri_px: np.ndarray, width: int, height: int) -> np.ndar
     """How many triangles contain each texel centre (H, W); > 1 means the UV layout overlaps."""
     tri_px = np.asarray(tri_px, dtype=np.float64).reshape(-1, 3, 2)
     count = np.zeros((height, width), np.int64)
-    edges = np.roll(tri_px, -1, axis=1) - tri_px
-    signed_area = 0.5 * (edges[:, 0, 0] * edges[:, 1, 1] - edges[:, 0, 1] * edges[:, 1, 0])
-    keep = np.abs(signed_area) > MIN_UV_AREA_TEXELS
-    tri_px, edges, sign = tri_px[keep], edges[keep], np.sign(signed_area[keep])
+    _, tri_px, edges, sign = _usable_triangles(tri_px)
     if len(tri_px) == 0:
         return count
     tri, row, col = _candidate_pairs(tri_px, width, height)
     centre = np.stack([col + 0.5, row + 0.5], axis=-1)
     inside = np.ones(len(tri), bool)
     for k in range(3):
-        e = edges[tri, k]
-        normal = sign[tri, None] * np.stack([-e[:, 1], e[:, 0]], axis=-1)
+        normal = _inward_normal(edges, sign, tri, k)
         side = ((centre - tri_px[tri, k]) * normal).sum(-1)
         # Half-open rule so a centre on an edge shared by two triangles counts once.
         inside &= (side > 0) | ((side == 0) & ((normal[:, 1] > 0) | ((normal[:, 1] == 0) & (normal[:, 0] > 0))))
