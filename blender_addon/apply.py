@@ -29,9 +29,8 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.octahedral import pixel_directions, pixel_solid_angles
     from ..shaders.sg_math import sg_irradiance
     from ..shaders.sg_shading import encode_sharpness
-    from ..shaders.sg_textures import GUTTER_PASSES, pack_tiles, read_sg_texture, sg_texture_path
+    from ..shaders.sg_textures import pack_tiles, read_sg_texture, scatter_dilated, sg_texture_path
     from ..shaders.texel_maps import channels, read_texel_maps
-    from ..shaders.texel_raster import dilate
     from .capture import LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, remove_lightmap_uvs
     from .scene_analysis import BAKED_COPY_KEY, principled_surface
 except ImportError:  # bpy as a module with the repository on sys.path
@@ -45,9 +44,8 @@ except ImportError:  # bpy as a module with the repository on sys.path
     from shaders.octahedral import pixel_directions, pixel_solid_angles
     from shaders.sg_math import sg_irradiance
     from shaders.sg_shading import encode_sharpness
-    from shaders.sg_textures import GUTTER_PASSES, pack_tiles, read_sg_texture, sg_texture_path
+    from shaders.sg_textures import pack_tiles, read_sg_texture, scatter_dilated, sg_texture_path
     from shaders.texel_maps import channels, read_texel_maps
-    from shaders.texel_raster import dilate
 
 BAKE_RECORD_KEY = "sglf_bake"  # on the scene: JSON {object: {slot index: original material}}
 COPY_SUFFIX = " (SG bake)"
@@ -64,15 +62,6 @@ def irradiance_from_lightfields(images: np.ndarray, normals: np.ndarray) -> np.n
     w = pixel_solid_angles(r).reshape(-1)
     cosine = np.maximum(np.asarray(normals, np.float64) @ d.T, 0.0) * w  # (T, P)
     return np.einsum("tp,tpc->tc", cosine, images.reshape(len(images), -1, images.shape[-1]).astype(np.float64))
-
-
-def _scatter(atlas_shape, texels, values):
-    grid = np.zeros(atlas_shape + values.shape[1:], np.float32)
-    grid[texels[:, 0], texels[:, 1]] = values
-    valid = np.zeros(atlas_shape, bool)
-    valid[texels[:, 0], texels[:, 1]] = True
-    filled, _ = dilate({"v": grid}, valid, GUTTER_PASSES)
-    return filled["v"]
 
 
 def build_packed_image(out_dir: Path, plan) -> tuple[SGTextureLayout, Path, dict]:
@@ -116,7 +105,7 @@ def build_packed_image(out_dir: Path, plan) -> tuple[SGTextureLayout, Path, dict
     for j in range(n):
         tiles[("sg", j)] = np.concatenate([axis[..., j, :], encode_sharpness(sharpness[..., j])[..., None]], -1)
         tiles[("amp", j)] = np.concatenate([amplitude[..., j, :], np.zeros(shape + (1,))], -1)
-    tiles[("irradiance", 0)] = np.concatenate([_scatter(shape, texels, irradiance), np.ones(shape + (1,))], -1)
+    tiles[("irradiance", 0)] = np.concatenate([scatter_dilated(shape, texels, irradiance), np.ones(shape + (1,))], -1)
     path = write_exr(out_dir / PACKED_FILE, pack_tiles(layout, tiles, shape), precision="half",
                      channels=["R", "G", "B", "A"], metadata={"plan_hash": plan.stage_hash("train"),
                                                               "layout": json.dumps(layout.to_dict())})

@@ -37,6 +37,19 @@ def channel_names(sg_count: int, amplitude_channels: int) -> list[str]:
     return names
 
 
+def scatter_dilated(atlas_shape, texels, values, empty=None) -> np.ndarray:
+    """Per-texel values (T, ...) placed at atlas texels (T, 2) [row, col], gutters dilated GUTTER_PASSES rings;
+    texels beyond the gutters hold `empty` (zeros when None)."""
+    grid = np.zeros(tuple(atlas_shape) + values.shape[1:], np.float32)
+    if empty is not None:
+        grid[...] = empty
+    grid[texels[:, 0], texels[:, 1]] = values
+    valid = np.zeros(tuple(atlas_shape), bool)
+    valid[texels[:, 0], texels[:, 1]] = True
+    filled, _ = dilate({"v": grid}, valid, GUTTER_PASSES)
+    return filled["v"]
+
+
 def write_sg_texture(path, texels, axis, sharpness, amplitude, atlas_shape, metadata: dict) -> dict:
     """Scatter per-texel SGs (T, N, ...) at atlas texels (T, 2) into a half EXR; returns the metadata written."""
     height, width = atlas_shape
@@ -45,15 +58,12 @@ def write_sg_texture(path, texels, axis, sharpness, amplitude, atlas_shape, meta
     axis_h, sharp_h, amp_h = pack_sg_half(axis, sharpness, amplitude, scale)
     per_texel = np.concatenate([axis_h.astype(np.float32), sharp_h.astype(np.float32)[..., None],
                                 amp_h.astype(np.float32)], axis=-1).reshape(t, -1)
-    grid = np.zeros((height, width, per_texel.shape[1]), np.float32)
-    grid[..., 2::4 + c] = 1.0  # empty texels: axis +Z, sharpness minimum, amplitude 0
-    grid[texels[:, 0], texels[:, 1]] = per_texel
-    valid = np.zeros((height, width), bool)
-    valid[texels[:, 0], texels[:, 1]] = True
-    filled, _ = dilate({"sg": grid}, valid, GUTTER_PASSES)
+    empty = np.zeros(per_texel.shape[1], np.float32)
+    empty[2::4 + c] = 1.0  # empty texels: axis +Z, sharpness minimum, amplitude 0
+    filled = scatter_dilated((height, width), texels, per_texel, empty)
     meta = {**metadata, "sg_count": n, "amplitude_channels": c, "amplitude_scale": repr(scale),
             "packing": "per SG: axis xyz, sharpness, amplitude (divided by amplitude_scale)"}
-    write_exr(path, filled["sg"], precision="half", channels=channel_names(n, c), metadata=meta)
+    write_exr(path, filled, precision="half", channels=channel_names(n, c), metadata=meta)
     return meta
 
 
