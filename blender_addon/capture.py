@@ -17,7 +17,6 @@ below the real surface, and rays leaving along a smoothed normal would start ins
 """
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import asdict, dataclass, field

@@ -7,7 +7,7 @@ import time
 import bpy
 
 try:  # inside the installed extension the numpy side is a sibling package
-    from ..shaders.bake_plan import PRESETS, BakeCancelled, BakeInputError, BakeSettings
+    from ..shaders.bake_plan import BakeCancelled, BakeInputError, BakeSettings
     from . import apply as apply_module
     from .pipeline import BakeJob
     from .scene_analysis import build_plan
@@ -15,7 +15,7 @@ except ImportError:  # bpy as a module with the repository on sys.path
     from blender_addon import apply as apply_module
     from blender_addon.pipeline import BakeJob
     from blender_addon.scene_analysis import build_plan
-    from shaders.bake_plan import PRESETS, BakeCancelled, BakeInputError, BakeSettings
+    from shaders.bake_plan import BakeCancelled, BakeInputError, BakeSettings
 
 _jobs = {}  # scene name -> running BakeJob (one bake per scene)
 # The modal bake renders small tiles so one step (one Cycles call) lasts about a second: Esc is honoured

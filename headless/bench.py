@@ -17,7 +17,6 @@ writes them to bench_out/bench.json.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path

@@ -6,15 +6,15 @@ afresh so numbers of different bakes are never mixed.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 try:
+    from .atomic import atomic_output
     from .bake_plan import write_json_atomic
 except ImportError:
+    from shaders.atomic import atomic_output
     from shaders.bake_plan import write_json_atomic
 
 REPORT_NAME = "report.json"
@@ -59,13 +59,6 @@ def save_png(path, image, *, min_width: int = 512) -> Path:
     scale = max(1, -(-min_width // max(data.shape[1], 1)))
     data = np.repeat(np.repeat(data, scale, axis=0), scale, axis=1)
     pixels = np.round(np.clip(data, 0.0, 1.0) * 255).astype(np.uint8)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp.png", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_output(path, suffix=".tmp.png") as tmp:
         Image.fromarray(pixels).save(tmp, format="PNG")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return path

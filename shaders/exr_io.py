@@ -5,11 +5,14 @@ up to four channels and ``c000``, ``c001``, ... beyond. Every error names the fi
 """
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+try:
+    from .atomic import atomic_output
+except ImportError:
+    from shaders.atomic import atomic_output
 
 _DTYPES = {"half": np.float16, "float": np.float32}
 
@@ -22,13 +25,6 @@ def default_channel_names(count: int) -> list[str]:
     if count <= 4:
         return list("RGBA"[:count]) if count != 1 else ["Y"]
     return [f"c{i:03d}" for i in range(count)]
-
-
-def _atomic_target(path: Path):
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp.exr", dir=path.parent)
-    os.close(fd)
-    return Path(tmp)
 
 
 def write_exr(path, array, *, precision: str = "half", channels: list[str] | None = None,
@@ -59,17 +55,11 @@ def write_exr(path, array, *, precision: str = "half", channels: list[str] | Non
     }
     for key, value in (metadata or {}).items():
         header[f"sglf_{key}"] = str(value)
-    tmp = _atomic_target(path)
     try:
-        with OpenEXR.File(header, pixels) as exr:
+        with atomic_output(path, suffix=".tmp.exr") as tmp, OpenEXR.File(header, pixels) as exr:
             exr.write(str(tmp))
-        os.replace(tmp, path)
     except OSError as exc:
-        tmp.unlink(missing_ok=True)
         raise ExrError(f"{path}: cannot write ({exc.strerror or exc})") from exc
-    except Exception:
-        tmp.unlink(missing_ok=True)
-        raise
     return path
 
 

@@ -7,6 +7,11 @@ import html
 import json
 from pathlib import Path
 
+try:
+    from .atomic import atomic_output
+except ImportError:
+    from shaders.atomic import atomic_output
+
 PICTURE_CAPTIONS = [
     ("capture_position.png", "Texel positions (atlas)"), ("capture_normal.png", "Texel shading normals"),
     ("capture_validity.png", "Texel validity: white covered, blue partly covered, orange pushed out, red buried, grey gutter"),
@@ -63,7 +68,6 @@ def write_report_html(out_dir) -> Path:
     for name, caption in pictures:
         parts.append(f"<figure>{_image(out_dir / name)}<figcaption>{esc(caption)}</figcaption></figure>")
     path = out_dir / "report.html"
-    tmp = path.with_suffix(".html.tmp")
-    tmp.write_text("\n".join(parts))
-    tmp.replace(path)
+    with atomic_output(path) as tmp:
+        tmp.write_text("\n".join(parts))
     return path

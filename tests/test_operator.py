@@ -2,7 +2,6 @@
 import hashlib
 
 import bpy  # noqa: I001
-import numpy as np
 import pytest
 
 import blender_addon

@@ -13,10 +13,7 @@ P evaluated at a direction jittered uniformly inside the pixel, zero below the t
 """
 from __future__ import annotations
 
-import io
 import math
-import os
-import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -25,6 +22,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from shaders.atomic import atomic_output
 from shaders.sg_math import SHARPNESS_MAX, SHARPNESS_MIN
 from training.sg_torch import oct_decode, pixel_solid_angles, safe_normalize, sg_sum_eval
 
@@ -190,17 +188,8 @@ class PerTexelParameters(nn.Module):
 
 
 def _atomic_torch_save(obj, path: Path):
-    path.parent.mkdir(parents=True, exist_ok=True)
-    buffer = io.BytesIO()
-    torch.save(obj, buffer)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(buffer.getvalue())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_output(path) as tmp:
+        torch.save(obj, tmp)
 
 
 class Trainer:
