@@ -23,6 +23,8 @@ import torch
 from torch import nn
 
 from shaders.atomic import atomic_output
+from shaders.octahedral import pixel_directions
+from shaders.octahedral import pixel_solid_angles as exact_solid_angles
 from shaders.sg_math import SHARPNESS_MAX, SHARPNESS_MIN
 from training.sg_torch import oct_decode, pixel_solid_angles, safe_normalize, sg_sum_eval
 
@@ -118,12 +120,6 @@ def jittered_directions(batch: int, resolution: int, generator: torch.Generator,
         2.0 / resolution)
     uv = torch.stack([u, v], dim=-1)[None] + jitter
     return oct_decode(uv.clamp(-1.0, 1.0))
-
-
-def centre_directions(resolution: int, device="cpu"):
-    centres = (torch.arange(resolution, dtype=torch.float32, device=device) + 0.5) / resolution * 2 - 1
-    v, u = torch.meshgrid(centres, centres, indexing="ij")
-    return oct_decode(torch.stack([u, v], dim=-1))
 
 
 def predict(params, directions):
@@ -377,7 +373,7 @@ def _clone_state(state):
 # --- evaluation --------------------------------------------------------------------------------------
 def reconstruct(axis, sharpness, amplitude, resolution: int) -> np.ndarray:
     """SG parameters (numpy) evaluated at pixel centres -> (T, R, R, C)."""
-    directions = centre_directions(resolution).numpy().astype(np.float64)
+    directions = pixel_directions(resolution)
     out = []
     for start in range(0, len(axis), 512):
         a, s, m = (np.asarray(x[start:start + 512], np.float64) for x in (axis, sharpness, amplitude))
@@ -389,8 +385,8 @@ def reconstruct(axis, sharpness, amplitude, resolution: int) -> np.ndarray:
 def error_metrics(prediction: np.ndarray, target: np.ndarray, normals: np.ndarray) -> dict:
     """Solid-angle-weighted errors over the upper hemisphere (pixel centres): log loss, RMSE log and linear."""
     resolution = target.shape[1]
-    directions = centre_directions(resolution).numpy()
-    weights = np.asarray(pixel_solid_angles(resolution).numpy(), np.float64)
+    directions = pixel_directions(resolution)
+    weights = exact_solid_angles(resolution)
     normals = np.asarray(normals, np.float64)
     above = (np.einsum("rcx,tx->trc", directions, normals) > 0) | (np.abs(normals).sum(-1) == 0)[:, None, None]
     w = (weights[None] * above)[..., None]
