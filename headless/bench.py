@@ -157,7 +157,8 @@ def bench_train(out_root: Path, scene_name: str = "spheres", budget_s: float = 6
     from shaders.texel_maps import channels, read_texel_maps
     from training.baselines import (bytes_per_texel_fixed_sg, bytes_per_texel_sh_l2, eval_fixed_sg, eval_sh,
                                     fit_fixed_sg, fit_sh_l2)
-    from training.sg_fit import LightFieldData, TrainConfig, Trainer, error_metrics, reconstruct
+    from training.sg_fit import (LightFieldData, TrainConfig, Trainer, error_metrics, midpoint_parameters,
+                                 pair_indices, reconstruct, unit_midpoint)
 
     scene = build_demo_scene(scene_name)
     settings = BakeSettings.from_preset("draft", lightfield_resolution=16, samples=32, sg_count=sg_count,
@@ -170,11 +171,8 @@ def bench_train(out_root: Path, scene_name: str = "spheres", budget_s: float = 6
     texels, images = read_images(out / "lightfield", plan.stage_hash("render"))
     pairs, held_out = read_images(out / "midpoints", plan.stage_hash("render"))
     normals = channels(atlas, "Ng.X", 3)[texels[:, 0], texels[:, 1]].astype(np.float64)
-    index = {(int(r), int(c)): i for i, (r, c) in enumerate(texels)}
-    a_idx = np.array([index[(int(r), int(c))] for r, c in pairs[:, :2]])
-    b_idx = np.array([index[(int(r), int(c))] for r, c in pairs[:, 2:]])
-    n_mid = normals[a_idx] + normals[b_idx]
-    n_mid /= np.linalg.norm(n_mid, axis=1, keepdims=True)
+    a_idx, b_idx = pair_indices(texels, pairs)
+    n_mid = unit_midpoint(normals[a_idx], normals[b_idx])
     rows, curves = [], {}
 
     def add(name, prediction, midpoint_prediction, seconds, bytes_per_texel):
@@ -194,10 +192,7 @@ def bench_train(out_root: Path, scene_name: str = "spheres", budget_s: float = 6
                           axis_alignment=align)
         state = trainer.train()
         a, s, m = trainer.parameters_numpy()
-        mid_axis = a[a_idx] + a[b_idx]
-        mid_axis /= np.maximum(np.linalg.norm(mid_axis, axis=-1, keepdims=True), 1e-8)
-        add(name, reconstruct(a, s, m, 16),
-            reconstruct(mid_axis, 0.5 * (s[a_idx] + s[b_idx]), 0.5 * (m[a_idx] + m[b_idx]), 16),
+        add(name, reconstruct(a, s, m, 16), reconstruct(*midpoint_parameters(a, s, m, a_idx, b_idx), 16),
             state.seconds[-1], 2 * sg_count * 7)
         curves[name] = (state.seconds, state.losses)
     start = time.perf_counter()

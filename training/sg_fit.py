@@ -382,6 +382,25 @@ def reconstruct(axis, sharpness, amplitude, resolution: int) -> np.ndarray:
     return np.concatenate(out).astype(np.float32)
 
 
+def pair_indices(texels: np.ndarray, pairs: np.ndarray):
+    """Rows (a, b) of `texels` ((T, 2) atlas [row, col]) for each pair [row, col, row2, col2] (M, 4)."""
+    index = {(int(r), int(c)): i for i, (r, c) in enumerate(texels)}
+    a = np.array([index[(int(r), int(c))] for r, c in pairs[:, :2]], np.int64)
+    b = np.array([index[(int(r), int(c))] for r, c in pairs[:, 2:]], np.int64)
+    return a, b
+
+
+def unit_midpoint(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """normalise(x + y): a blended axis or normal, as a shader renormalises it after interpolation."""
+    total = np.asarray(x, np.float64) + y
+    return total / np.maximum(np.linalg.norm(total, axis=-1, keepdims=True), 1e-8)
+
+
+def midpoint_parameters(axis, sharpness, amplitude, a, b):
+    """SG parameters halfway between texels a and b, as bilinear filtering gives them at the midpoint."""
+    return unit_midpoint(axis[a], axis[b]), 0.5 * (sharpness[a] + sharpness[b]), 0.5 * (amplitude[a] + amplitude[b])
+
+
 def error_metrics(prediction: np.ndarray, target: np.ndarray, normals: np.ndarray) -> dict:
     """Solid-angle-weighted errors over the upper hemisphere (pixel centres): log loss, RMSE log and linear."""
     resolution = target.shape[1]

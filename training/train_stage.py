@@ -36,21 +36,6 @@ class TrainResult:
     files: list = field(default_factory=list)
 
 
-def midpoint_error(trainer_params, pairs_texels, texel_index, held_out, normals_mid, resolution):
-    """Reconstruction from parameters averaged between the two neighbours (what bilinear filtering does at the
-    midpoint: the axis is renormalised by the shader) against the rendered midpoint light field."""
-    from training.sg_fit import error_metrics, reconstruct
-
-    axis, sharpness, amplitude = trainer_params
-    a = np.array([texel_index[(int(r), int(c))] for r, c in pairs_texels[:, :2]])
-    b = np.array([texel_index[(int(r), int(c))] for r, c in pairs_texels[:, 2:]])
-    mid_axis = axis[a] + axis[b]
-    mid_axis /= np.maximum(np.linalg.norm(mid_axis, axis=-1, keepdims=True), 1e-8)
-    prediction = reconstruct(mid_axis, 0.5 * (sharpness[a] + sharpness[b]), 0.5 * (amplitude[a] + amplitude[b]),
-                             resolution)
-    return error_metrics(prediction, held_out, normals_mid)
-
-
 ENV_SGS_FILE = "env_sgs.json"
 ENV_SG_COUNT = 16
 ENV_FIT_SECONDS = 10.0
@@ -90,7 +75,8 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
     Closing it early saves the checkpoint, so the next run continues the same curve."""
     import torch
 
-    from training.sg_fit import LightFieldData, TrainConfig, Trainer, error_metrics, reconstruct
+    from training.sg_fit import (LightFieldData, TrainConfig, Trainer, error_metrics, midpoint_parameters,
+                                 pair_indices, reconstruct, unit_midpoint)
 
     start = time.perf_counter()
     out_dir = Path(out_dir)
@@ -136,13 +122,12 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
         save_png(out_dir / picture, np.concatenate([target_mosaic, gap, predicted_mosaic], axis=1))
         result.files.append(picture)
         if kind == "lightfield" and (out_dir / "midpoints").is_dir():
+            # Parameters averaged between the two neighbours (what bilinear filtering gives at the midpoint)
+            # against the rendered, held-out midpoint light field.
             pairs, held_out = read_images(out_dir / "midpoints", plan.stage_hash("render"))
-            index = {(int(r), int(c)): i for i, (r, c) in enumerate(texels)}
-            normal_mid = channels(atlas, "Ng.X", 3)[pairs[:, 0], pairs[:, 1]] + \
-                channels(atlas, "Ng.X", 3)[pairs[:, 2], pairs[:, 3]]
-            normal_mid /= np.maximum(np.linalg.norm(normal_mid, axis=1, keepdims=True), 1e-8)
-            metrics["midpoint"] = midpoint_error((axis, sharpness, amplitude), pairs, index, held_out, normal_mid,
-                                                 data.resolution)
+            a, b = pair_indices(texels, pairs)
+            prediction = reconstruct(*midpoint_parameters(axis, sharpness, amplitude, a, b), data.resolution)
+            metrics["midpoint"] = error_metrics(prediction, held_out, unit_midpoint(normals[a], normals[b]))
         path = sg_texture_path(out_dir, kind)
         write_sg_texture(path, texels, axis, sharpness, amplitude, atlas.shape[:2],
                          {"plan_hash": plan_hash, "kind": kind, "epochs": state.epoch})
