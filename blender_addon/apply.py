@@ -219,21 +219,26 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
     return info
 
 
-def remove_bake(scene) -> int:
-    """Restore the original materials of every slot the bake changed and delete what the bake made.
-    Returns the number of slots restored."""
+def baked_slots(scene):
+    """(material slot, original material) of every slot the scene's bake switched and that still exists."""
     record = json.loads(scene.get(BAKE_RECORD_KEY, "{}"))
-    restored = 0
-    originals = set()
     for object_name, slots in record.items():
         obj = scene.objects.get(object_name)
         for index, original_name in slots.items():
             original = bpy.data.materials.get(original_name)
-            originals.add(original_name)
-            if obj is None or original is None or int(index) >= len(obj.material_slots):
-                continue
-            obj.material_slots[int(index)].material = original
-            restored += 1
+            if obj is not None and original is not None and int(index) < len(obj.material_slots):
+                yield obj.material_slots[int(index)], original
+
+
+def remove_bake(scene) -> int:
+    """Restore the original materials of every slot the bake changed and delete what the bake made.
+    Returns the number of slots restored."""
+    record = json.loads(scene.get(BAKE_RECORD_KEY, "{}"))
+    originals = {name for slots in record.values() for name in slots.values()}  # incl. of deleted objects
+    restored = 0
+    for slot, original in list(baked_slots(scene)):
+        slot.material = original
+        restored += 1
     for material in [m for m in bpy.data.materials if COPY_KEY in m and m.users == 0]:
         bpy.data.materials.remove(material)
     for name in originals:

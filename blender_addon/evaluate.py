@@ -11,7 +11,6 @@ Nothing of the scene changes: temporary cameras and material swaps are undone be
 """
 from __future__ import annotations
 
-import json
 import math
 import tempfile
 import time
@@ -24,18 +23,14 @@ from mathutils import Vector
 try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.bake_plan import BakeInputError
     from ..shaders.bake_report import save_png, update_report
-    from ..shaders.exr_io import read_exr
     from ..shaders.image_metrics import flip, heat, psnr, rmse, tonemap
-    from .apply import BAKE_RECORD_KEY
-    from .render import quiet_stdout
-    from .scene_analysis import active_scene
+    from .apply import BAKE_RECORD_KEY, baked_slots
+    from .render import render_still
 except ImportError:  # bpy as a module with the repository on sys.path
-    from blender_addon.apply import BAKE_RECORD_KEY
-    from blender_addon.render import quiet_stdout
-    from blender_addon.scene_analysis import active_scene
+    from blender_addon.apply import BAKE_RECORD_KEY, baked_slots
+    from blender_addon.render import render_still
     from shaders.bake_plan import BakeInputError
     from shaders.bake_report import save_png, update_report
-    from shaders.exr_io import read_exr
     from shaders.image_metrics import flip, heat, psnr, rmse, tonemap
 
 
@@ -67,26 +62,17 @@ def _view_cameras(scene, plan, count):
 
 def _swap_to_originals(scene):
     """Put the original materials back into the baked slots; returns the undo list."""
-    record = json.loads(scene.get(BAKE_RECORD_KEY, "{}"))
     undo = []
-    for object_name, slots in record.items():
-        obj = scene.objects.get(object_name)
-        for index, original in slots.items():
-            if obj is not None and int(index) < len(obj.material_slots) and original in bpy.data.materials:
-                slot = obj.material_slots[int(index)]
-                undo.append((slot, slot.material))
-                slot.material = bpy.data.materials[original]
+    for slot, original in list(baked_slots(scene)):
+        undo.append((slot, slot.material))
+        slot.material = original
     return undo
 
 
 def _render(scene, camera, path, samples, seed):
     scene.camera = camera
     scene.cycles.samples, scene.cycles.seed = samples, seed
-    scene.render.filepath = str(path)
-    with active_scene(scene), quiet_stdout():
-        bpy.ops.render.render(write_still=True, scene=scene.name)
-    pixels, _, _ = read_exr(path, channels=["R", "G", "B"])
-    return pixels.astype(np.float64)
+    return render_still(scene, path).astype(np.float64)
 
 
 def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144), reference_samples: int = 128,

@@ -40,8 +40,8 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.env_visibility import env_visibility
     from ..shaders.exr_io import read_exr, write_exr
     from ..shaders.lightfield_tiles import (DEFAULT_TILE_MEGAPIXELS, TileIndex, blocks_to_images, images_to_blocks,
-                                            parse_share, plan_tiles, preview_mosaic, read_images, tile_is_finished,
-                                            write_index)
+                                            parse_share, plan_tiles, preview_mosaic, read_preview_images,
+                                            tile_is_finished, write_index)
     from ..shaders.texel_maps import channels, read_texel_maps
     from .scene_analysis import active_scene
 except ImportError:  # bpy as a module with the repository on sys.path
@@ -51,14 +51,15 @@ except ImportError:  # bpy as a module with the repository on sys.path
     from shaders.env_visibility import env_visibility
     from shaders.exr_io import read_exr, write_exr
     from shaders.lightfield_tiles import (DEFAULT_TILE_MEGAPIXELS, TileIndex, blocks_to_images, images_to_blocks,
-                                          parse_share, plan_tiles, preview_mosaic, read_images, tile_is_finished,
-                                          write_index)
+                                          parse_share, plan_tiles, preview_mosaic, read_preview_images,
+                                          tile_is_finished, write_index)
     from shaders.texel_maps import channels, read_texel_maps
 
 CAMERA_SHADER = Path(__file__).resolve().parent.parent / "shaders" / "lightfield_camera.osl"
 LAMP_MIN_PIXEL_FRACTION = 0.5  # of an octahedral pixel's angular radius (about 2/R radians)
 ENV_RADIANCE_SAMPLES = 256
 MIDPOINT_SEED = 20200
+PREVIEW_TEXELS = 16
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 TEMP_PREFIX = "SGLF render"
 
@@ -108,6 +109,17 @@ def _import_oslquery():
         if os.path.isdir(bundled) and bundled not in sys.path:
             sys.path.append(bundled)
         import oslquery  # noqa: F401
+
+
+def render_still(scene, path) -> np.ndarray:
+    """Render `scene` with its own settings into the EXR `path` (Cycles' log kept off stdout); (H, W, 3) float32."""
+    scene.render.filepath = str(path)
+    with active_scene(scene), quiet_stdout():
+        bpy.ops.render.render(write_still=True, scene=scene.name)
+    if not Path(path).is_file():
+        raise BakeInputError(f"the render of scene '{scene.name}' wrote no image ({path})")
+    pixels, _, _ = read_exr(path, channels=["R", "G", "B"])
+    return pixels
 
 
 class _RenderScene:
@@ -298,12 +310,7 @@ class _RenderScene:
         self.camera.data.update_tag()
         self.scene.render.resolution_x, self.scene.render.resolution_y = columns * resolution, rows * resolution
         output = self.work_dir / f"{name}_render.exr"
-        self.scene.render.filepath = str(output)
-        with active_scene(self.scene), quiet_stdout():
-            bpy.ops.render.render(write_still=True, scene=self.scene.name)
-        if not output.is_file():
-            raise BakeInputError(f"Cycles wrote no image for {name}")
-        pixels, _, _ = read_exr(output, channels=["R", "G", "B"])
+        pixels = render_still(self.scene, output)
         for key in textures.values():
             Path(key).unlink(missing_ok=True)
         output.unlink(missing_ok=True)
@@ -467,7 +474,7 @@ def _save_previews(out_dir, plan_hash, kinds) -> list[str]:
     names = []
     for kind in kinds:
         try:
-            _, images = read_images(out_dir / kind, plan_hash)
+            images = read_preview_images(out_dir / kind, plan_hash, PREVIEW_TEXELS)
         except BakeInputError:
             continue
         name = f"render_{kind}.png"

@@ -160,6 +160,25 @@ def read_images(kind_dir: Path, plan_hash: str | None = None):
     return np.asarray(texels, np.int64), np.concatenate(images).astype(np.float32)
 
 
+def read_preview_images(kind_dir: Path, plan_hash: str | None, count: int) -> np.ndarray:
+    """`count` evenly spaced texels' images (count, R, R, C), reading only the tiles that hold them."""
+    kind_dir = Path(kind_dir)
+    index = read_index(kind_dir, plan_hash)
+    missing = [t.file for t in index.tiles if not tile_is_finished(kind_dir, index, t)]
+    if missing or not index.tiles:
+        raise BakeInputError(f"{kind_dir}: {len(missing)} of {len(index.tiles)} tiles are not rendered")
+    starts = np.cumsum([0] + [len(t.texels) for t in index.tiles])
+    wanted = np.unique(np.linspace(0, starts[-1] - 1, num=min(count, starts[-1])).astype(int))
+    images = []
+    for k, tile in enumerate(index.tiles):
+        local = wanted[(wanted >= starts[k]) & (wanted < starts[k + 1])] - starts[k]
+        if len(local):
+            pixels, _, _ = read_exr(kind_dir / tile.file)
+            images.append(blocks_to_images(pixels[..., :index.channels], tile.columns, tile.rows, index.resolution,
+                                           len(tile.texels))[local])
+    return np.concatenate(images).astype(np.float32)
+
+
 def preview_mosaic(images: np.ndarray, count: int = 16, gap: int = 1) -> np.ndarray:
     """Up to `count` evenly spaced per-texel images (T, R, R, C) side by side, tone mapped to [0, 1]
     (x / (1 + x), gamma 2.2; one channel shown as grey) with `gap` black pixels between them."""
