@@ -113,14 +113,32 @@ def hair_loss(prediction: torch.Tensor, target: torch.Tensor, gradient_weight: f
     return loss
 
 
-def export_onnx(model: HairUNet, path, height: int = 64, width: int = 64, opset: int = 17):
-    """Export with dynamic batch and image size; returns the path. Uses torch's TorchScript exporter: the newer
-    torch.export one needs the onnxscript package, which nothing else here needs."""
+def export_onnx(model: HairUNet, path, height: int = 64, width: int = 64, opset: int = 17,
+                metadata: dict | None = None):
+    """Export with dynamic batch and image size, atomically; returns the path. The model's configuration
+    (name, samples per pixel, stride) and `metadata` go into the ONNX metadata, which the filter checks.
+    Uses torch's TorchScript exporter: the torch.export one needs onnxscript, which nothing else needs."""
+    import onnx
+
+    try:
+        from ..shaders.atomic import atomic_output
+    except ImportError:
+        from shaders.atomic import atomic_output
     model.eval()
     dummy = torch.zeros((1, model.config.in_channels, height, width))
-    torch.onnx.export(model, dummy, str(path), input_names=["features"], output_names=["outputs"], opset_version=opset,
-                      dynamic_axes={"features": {0: "batch", 2: "height", 3: "width"},
-                                    "outputs": {0: "batch", 2: "height", 3: "width"}}, dynamo=False)
+    with atomic_output(path, suffix=".tmp.onnx") as tmp:
+        torch.onnx.export(model, dummy, str(tmp), input_names=["features"], output_names=["outputs"],
+                          opset_version=opset, dynamic_axes={"features": {0: "batch", 2: "height", 3: "width"},
+                                                             "outputs": {0: "batch", 2: "height", 3: "width"}},
+                          dynamo=False)
+        proto = onnx.load(str(tmp))
+        entries = {"sglf_hair_config": model.config.name, "sglf_hair_samples": str(model.config.samples),
+                   "sglf_hair_stride": str(model.config.multiple),
+                   **{f"sglf_{k}": str(v) for k, v in (metadata or {}).items()}}
+        for key, value in entries.items():
+            item = proto.metadata_props.add()
+            item.key, item.value = key, value
+        onnx.save(proto, str(tmp))
     return path
 
 
@@ -129,11 +147,3 @@ def onnx_session(path):
     import onnxruntime
 
     return onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-
-
-def composite(outputs, hair_color, background):
-    """The paper's final image: (colour factor x hair colour + highlight) over the background with alpha.
-    outputs (3, H, W) numpy or torch; hair_color (3,); background (3, H, W)."""
-    color, highlight, alpha = outputs[0:1], outputs[1:2], outputs[2:3]
-    hair = color * hair_color.reshape(3, 1, 1) + highlight
-    return alpha * hair + (1 - alpha) * background

@@ -1,0 +1,318 @@
+"""Hair in Blender: strands out of curves objects, the Cycles reference with Paper II's feature split,
+the scene's key light and hair colour, and the background the filtered hair is composited over.
+
+Reference (what the filter is trained to reproduce): Cycles traces the real strands (ribbons of their real
+radius, fibre opacity through a Transparent BSDF mix) with a box pixel filter at many samples per pixel,
+which is the paper's supersample-and-downsample. The lobes of Paper II go into the colours of two closures
+whose response to a sun of strength pi is exactly their colour times the light's visibility:
+  colour factor  Diffuse BSDF, colour F_d + F_TRT, normal = direction to the light  -> Diffuse Direct pass
+  highlight      Translucent BSDF, colour F_R, normal = away from the light         -> Transmission Direct
+so Cycles computes visibility (transparent shadows through the other strands) per sample, and input and
+reference describe the same shading. The passes are alpha-premultiplied; the targets are straight.
+"""
+from __future__ import annotations
+
+import math
+import tempfile
+from pathlib import Path
+
+import bpy
+import numpy as np
+from mathutils import Matrix, Vector
+
+try:
+    from ..shaders.bake_plan import BakeInputError
+    from ..shaders.exr_io import read_exr
+    from ..shaders.hair_raster import HairShading, PinholeCamera, Strands
+    from .render import quiet_stdout
+    from .scene_analysis import active_scene
+except ImportError:
+    from blender_addon.render import quiet_stdout
+    from blender_addon.scene_analysis import active_scene
+    from shaders.bake_plan import BakeInputError
+    from shaders.exr_io import read_exr
+    from shaders.hair_raster import HairShading, PinholeCamera, Strands
+
+TEMP_PREFIX = "SGLF hair"
+DEFAULT_HAIR_COLOR = (0.35, 0.2, 0.1)
+
+
+def hair_objects(scene) -> list:
+    return [obj for obj in scene.objects if obj.type == "CURVES" and not obj.hide_render]
+
+
+def strands_from_objects(objects, depsgraph) -> Strands:
+    """All strands of the evaluated curves objects as one Strands (world and model space)."""
+    worlds, models, radii, offsets, grooms, base = [], [], [], [0], [], 0
+    for number, obj in enumerate(objects):
+        evaluated = obj.evaluated_get(depsgraph)
+        data = evaluated.data
+        count = len(data.points)
+        if count == 0:
+            continue
+        model = np.empty(count * 3, np.float32)
+        data.attributes["position"].data.foreach_get("vector", model)
+        model = model.reshape(-1, 3).astype(np.float64)
+        radius = np.full(count, 0.005, np.float32)
+        if "radius" in data.attributes:
+            data.attributes["radius"].data.foreach_get("value", radius)
+        curve_offsets = np.empty(len(data.curves) + 1, np.int32)
+        data.curve_offset_data.foreach_get("value", curve_offsets)
+        matrix = np.array(evaluated.matrix_world, np.float64)
+        worlds.append(model @ matrix[:3, :3].T + matrix[:3, 3])
+        models.append(model)
+        scale = float(np.cbrt(abs(np.linalg.det(matrix[:3, :3])))) or 1.0
+        radii.append(radius.astype(np.float64) * scale)
+        offsets.extend((curve_offsets[1:] + base).tolist())
+        grooms.append(np.full(len(curve_offsets) - 1, number))
+        base += count
+    if base == 0:
+        raise BakeInputError("the scene has no hair to filter: no render-visible curves object with strands")
+    return Strands(np.concatenate(worlds), np.concatenate(models), np.concatenate(radii), np.array(offsets),
+                   np.concatenate(grooms))
+
+
+def pinhole_camera(scene, depsgraph, camera_obj=None, width=None, height=None) -> PinholeCamera:
+    camera_obj = camera_obj or scene.camera
+    if camera_obj is None:
+        raise BakeInputError(f"scene '{scene.name}' has no camera to render the hair from")
+    cam = camera_obj.data
+    if cam.type != "PERSP":
+        raise BakeInputError(f"camera '{camera_obj.name}' is {cam.type.lower()}; hair filtering needs a "
+                             "perspective camera")
+    render = scene.render
+    width = width or int(render.resolution_x * render.resolution_percentage / 100)
+    height = height or int(render.resolution_y * render.resolution_percentage / 100)
+    fit = cam.sensor_fit
+    horizontal = fit == "HORIZONTAL" or (fit == "AUTO" and width >= height)
+    sensor = cam.sensor_width if fit != "VERTICAL" else cam.sensor_height
+    focal_px = cam.lens / sensor * (width if horizontal else height)
+    side = max(width, height) if fit == "AUTO" else (width if horizontal else height)
+    matrix = camera_obj.evaluated_get(depsgraph).matrix_world
+    return PinholeCamera(np.array(matrix.inverted(), np.float64), focal_px, width, height,
+                         (cam.shift_x * side, cam.shift_y * side))
+
+
+def key_light(scene, depsgraph, centre) -> tuple[np.ndarray, np.ndarray, str]:
+    """The one light Paper II's model allows: (unit direction to it, irradiance RGB at `centre`, name).
+
+    The strongest render-visible lamp by irradiance at the hair's centre: a sun gives its strength; point,
+    spot and area lamps their power over 4 pi d^2 (pi d^2 for area lamps, which emit into a hemisphere).
+    """
+    best = None
+    for obj in scene.objects:
+        if obj.type != "LIGHT" or obj.hide_render:
+            continue
+        light = obj.data
+        matrix = obj.evaluated_get(depsgraph).matrix_world
+        color = np.array(light.color, np.float64)
+        if light.type == "SUN":
+            direction = np.array(matrix.to_3x3() @ Vector((0.0, 0.0, 1.0)), np.float64)
+            irradiance = light.energy
+        else:
+            offset = np.array(matrix.translation, np.float64) - centre
+            distance = max(float(np.linalg.norm(offset)), 1e-6)
+            direction = offset / distance
+            irradiance = light.energy / ((math.pi if light.type == "AREA" else 4 * math.pi) * distance ** 2)
+        candidate = (irradiance * color.mean(), direction / np.linalg.norm(direction), irradiance * color, obj.name)
+        if best is None or candidate[0] > best[0]:
+            best = candidate
+    if best is None:
+        raise BakeInputError(f"scene '{scene.name}' has no lamp; hair filtering shades with one key light")
+    return best[1], best[2], best[3]
+
+
+def hair_color(obj) -> tuple[np.ndarray, str | None]:
+    """The strand colour of the object's first material (Principled Hair 'Color' or a Base Color); default
+    brown when none is readable. The second value explains a fallback."""
+    material = obj.active_material or (obj.data.materials[0] if len(obj.data.materials) else None)
+    if material is None or not material.use_nodes:
+        return np.array(DEFAULT_HAIR_COLOR), f"'{obj.name}' has no node material; default hair colour used"
+    for node in material.node_tree.nodes:
+        for name in ("Color", "Base Color"):
+            socket = node.inputs.get(name) if node.type in ("BSDF_HAIR_PRINCIPLED", "BSDF_HAIR",
+                                                              "BSDF_PRINCIPLED") else None
+            if socket is not None and not socket.is_linked:
+                return np.array(socket.default_value[:3], np.float64), None
+    return np.array(DEFAULT_HAIR_COLOR), f"'{obj.name}': hair colour not readable from its material; default used"
+
+
+def _lobe_material(to_light, shading: HairShading):
+    """Diffuse(F_d + F_TRT, N = L) + Translucent(F_R, N = -L), mixed with Transparent by fibre opacity."""
+    material = bpy.data.materials.new(f"{TEMP_PREFIX} lobes")
+    material.use_nodes = True
+    tree = material.node_tree
+    nodes, links = tree.nodes, tree.links
+    for node in list(nodes):
+        if node.type != "OUTPUT_MATERIAL":
+            nodes.remove(node)
+    geometry = nodes.new("ShaderNodeNewGeometry")
+
+    def vector_math(operation, a, b=None, value=None):
+        node = nodes.new("ShaderNodeVectorMath")
+        node.operation = operation
+        for index, source in enumerate((a, b)):
+            if source is None:
+                continue
+            if isinstance(source, bpy.types.NodeSocket):
+                links.new(source, node.inputs[index])
+            else:
+                node.inputs[index].default_value = source
+        return node.outputs["Value" if operation in ("DOT_PRODUCT", "LENGTH") else "Vector"]
+
+    def math_node(operation, a, b=None):
+        node = nodes.new("ShaderNodeMath")
+        node.operation = operation
+        node.use_clamp = False
+        for index, source in enumerate((a, b)):
+            if source is None:
+                continue
+            if isinstance(source, bpy.types.NodeSocket):
+                links.new(source, node.inputs[index])
+            else:
+                node.inputs[index].default_value = source
+        return node.outputs[0]
+
+    L = tuple(float(v) for v in to_light)
+    tangent = vector_math("NORMALIZE", geometry.outputs["Tangent"])
+    cos_tl = math_node("MINIMUM", math_node("MAXIMUM", vector_math("DOT_PRODUCT", tangent, L), -1.0), 1.0)
+    diffuse_factor = math_node("SQRT", math_node("MAXIMUM", math_node("SUBTRACT", 1.0,
+                                                                      math_node("MULTIPLY", cos_tl, cos_tl)), 0.0))
+    half = vector_math("NORMALIZE", vector_math("ADD", geometry.outputs["Incoming"], L))
+    cos_th = math_node("MINIMUM", math_node("MAXIMUM", vector_math("DOT_PRODUCT", tangent, half), -1.0), 1.0)
+    angle_th = math_node("ARCCOSINE", cos_th)
+
+    def lobe(shift_deg, exponent):
+        s = math_node("MAXIMUM", math_node("SINE", math_node("ADD", angle_th, math.radians(shift_deg))), 0.0)
+        return math_node("POWER", s, exponent)
+
+    color_factor = math_node("ADD", diffuse_factor, lobe(shading.shift_trt_deg, shading.exponent_trt))
+    highlight = lobe(shading.shift_r_deg, shading.exponent_r)
+    rgb = nodes.new("ShaderNodeCombineColor")
+    links.new(color_factor, rgb.inputs[0])
+    links.new(highlight, rgb.inputs[1])
+    # An unlinked Normal socket means "the surface normal", so the light direction goes in through a node;
+    # bump-map correction would bend that normal toward the ribbon's and dim the lobes (up to 3x).
+    material.cycles.use_bump_map_correction = False
+    normal = nodes.new("ShaderNodeCombineXYZ")
+    for axis in range(3):
+        normal.inputs[axis].default_value = -L[axis]
+    lobes = nodes.new("ShaderNodeBsdfTranslucent")
+    links.new(normal.outputs[0], lobes.inputs["Normal"])
+    links.new(rgb.outputs[0], lobes.inputs["Color"])
+    mix = nodes.new("ShaderNodeMixShader")
+    mix.inputs["Fac"].default_value = shading.opacity
+    links.new(nodes.new("ShaderNodeBsdfTransparent").outputs[0], mix.inputs[1])
+    links.new(lobes.outputs[0], mix.inputs[2])
+    links.new(mix.outputs[0], nodes["Material Output"].inputs["Surface"])
+    return material
+
+
+def render_reference(objects, camera: PinholeCamera, to_light, samples: int = 256,
+                     shading: HairShading = HairShading(), seed: int = 0, threads: int = 0) -> np.ndarray:
+    """Cycles reference of the strands of `objects`: (3, H, W) straight colour factor, highlight, alpha.
+
+    Only the given curves objects are rendered (no head, no world light): the hair alone, as the filter
+    sees it. Colour factor includes the ambient term; where alpha is 0 it is 1 and the highlight 0.
+    """
+    created = []
+    try:
+        scene = bpy.data.scenes.new(f"{TEMP_PREFIX} reference")
+        created.append((bpy.data.scenes, scene))
+        for obj in objects:
+            scene.collection.objects.link(obj)
+        world = bpy.data.worlds.new(f"{TEMP_PREFIX} black")
+        created.append((bpy.data.worlds, world))
+        world.use_nodes = False
+        world.color = (0.0, 0.0, 0.0)
+        scene.world = world
+        sun = bpy.data.lights.new(f"{TEMP_PREFIX} sun", "SUN")
+        created.append((bpy.data.lights, sun))
+        sun.energy, sun.angle = math.pi, 0.0
+        sun_obj = bpy.data.objects.new(f"{TEMP_PREFIX} sun", sun)
+        created.append((bpy.data.objects, sun_obj))
+        to_light = np.asarray(to_light, np.float64) / np.linalg.norm(to_light)
+        sun_obj.rotation_euler = Vector(tuple(to_light)).to_track_quat("Z", "Y").to_euler()
+        scene.collection.objects.link(sun_obj)
+        cam_data = bpy.data.cameras.new(f"{TEMP_PREFIX} camera")
+        created.append((bpy.data.cameras, cam_data))
+        cam_data.sensor_fit = "HORIZONTAL"
+        cam_data.sensor_width = 36.0
+        cam_data.lens = camera.focal_px / camera.width * 36.0
+        cam_data.shift_x = camera.shift_px[0] / camera.width
+        cam_data.shift_y = camera.shift_px[1] / camera.width
+        cam_data.clip_start, cam_data.clip_end = 1e-3, 1e4
+        cam_obj = bpy.data.objects.new(f"{TEMP_PREFIX} camera", cam_data)
+        created.append((bpy.data.objects, cam_obj))
+        cam_obj.matrix_world = Matrix(np.linalg.inv(camera.world_to_camera).tolist())
+        scene.collection.objects.link(cam_obj)
+        scene.camera = cam_obj
+        material = _lobe_material(to_light, shading)
+        created.append((bpy.data.materials, material))
+        view_layer = scene.view_layers[0]
+        view_layer.material_override = material
+        render = scene.render
+        render.engine = "CYCLES"
+        render.resolution_x, render.resolution_y, render.resolution_percentage = camera.width, camera.height, 100
+        render.film_transparent = True
+        render.use_compositing = False
+        render.use_sequencer = False
+        render.image_settings.media_type = "MULTI_LAYER_IMAGE"
+        render.image_settings.file_format = "OPEN_EXR_MULTILAYER"
+        render.image_settings.color_depth = "32"
+        render.threads_mode = "FIXED" if threads else "AUTO"
+        if threads:
+            render.threads = threads
+        cycles = scene.cycles
+        cycles.device = "CPU"
+        cycles.samples = samples
+        cycles.use_adaptive_sampling = False
+        cycles.use_denoising = False
+        cycles.seed = seed
+        cycles.pixel_filter_type = "BOX"
+        cycles.filter_width = 1.0
+        cycles.max_bounces = 0
+        cycles.transparent_max_bounces = 256
+        cycles.sample_clamp_direct = 0.0
+        cycles.sample_clamp_indirect = 0.0
+        scene.cycles_curves.shape = "RIBBONS"
+        scene.view_settings.view_transform = "Standard"
+        with tempfile.TemporaryDirectory(prefix="sglf_hair_") as tmp:
+            path = Path(tmp) / "reference.exr"
+            render.filepath = str(path)
+            with active_scene(scene), quiet_stdout():
+                bpy.ops.render.render(write_still=True, scene=scene.name)
+            layer = view_layer.name
+            names = [f"{layer}.Combined.{c}" for c in "RGA"]
+            pixels, _, _ = read_exr(path, channels=names)
+    finally:
+        for collection, block in reversed(created):
+            try:
+                collection.remove(block)
+            except (ReferenceError, RuntimeError):
+                pass
+    premultiplied = np.moveaxis(pixels.astype(np.float64), -1, 0)
+    alpha = np.clip(premultiplied[2], 0, 1)
+    safe = np.where(alpha > 1e-4, alpha, 1.0)
+    color = np.where(alpha > 1e-4, (premultiplied[0] + shading.ambient * alpha) / safe, 1.0)
+    highlight = np.where(alpha > 1e-4, premultiplied[1] / safe, 0.0)
+    return np.stack([color, highlight, alpha])
+
+
+# ---------------------------------------------------------------- training pairs
+
+TRAIN_STYLES = ("straight", "wavy", "curly")
+HELD_OUT_STYLE = "clumped"  # never seen in training
+
+
+def dataset_groom(style: str, density: float):
+    """The demo head with a denser groom of `style`; returns (scene, hair objects)."""
+    try:
+        from .demo_scenes import _set_modifier_inputs, build_demo_scene
+    except ImportError:
+        from blender_addon.demo_scenes import _set_modifier_inputs, build_demo_scene
+    scene = build_demo_scene(f"demo:hair-{style}")
+    objects = hair_objects(scene)
+    for obj in objects:
+        _set_modifier_inputs(obj.modifiers["Generate Hair Curves"], {"Density": density})
+    return scene, objects

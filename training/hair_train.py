@@ -1,0 +1,163 @@
+"""Train the hair filter on pairs from headless/hair_dataset.py and export it to ONNX.
+
+    python -m training.hair_train --data hair_data --config base --budget 900 --out models/hair_base.onnx
+
+Random 64x64 crops (flipped left-right with tangent x negated), Adam, the paper's loss; validation loss on
+the validation pairs after every epoch, the best weights kept. Checkpoints (weights_only, atomic) every
+epoch in --work; --resume continues from the last one. Progress bar with ETA on stderr.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+if __package__ in (None, ""):
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from shaders import hair_pairs  # noqa: E402
+from shaders.atomic import atomic_output  # noqa: E402
+from training.hair_unet import CONFIGS, HairNetConfig, HairUNet, export_onnx, hair_loss  # noqa: E402
+
+CROP = 64
+TANGENT_X = 4  # feature index inside a sample
+
+
+def load_pairs(directory, samples: int):
+    """(train inputs, train targets, validation inputs, validation targets) as float16 tensors."""
+    split = {"train": ([], []), "validation": ([], [])}
+    indices = hair_pairs.complete_indices(directory)
+    if not indices:
+        raise FileNotFoundError(f"no complete hair pairs in {directory}")
+    for index in indices:
+        features, target, meta = hair_pairs.read_pair(directory, index, samples)
+        split[meta["split"]][0].append(torch.from_numpy(features).half())
+        split[meta["split"]][1].append(torch.from_numpy(target).half())
+    out = []
+    for name in ("train", "validation"):
+        xs, ys = split[name]
+        out += [torch.stack(xs) if xs else None, torch.stack(ys) if ys else None]
+    return tuple(out)
+
+
+def random_crops(inputs, targets, batch: int, generator: torch.Generator):
+    n, _, h, w = inputs.shape
+    pick = torch.randint(0, n, (batch,), generator=generator)
+    ys = torch.randint(0, h - CROP + 1, (batch,), generator=generator)
+    xs = torch.randint(0, w - CROP + 1, (batch,), generator=generator)
+    flips = torch.rand(batch, generator=generator) < 0.5
+    x_batch, y_batch = [], []
+    for i in range(batch):
+        x = inputs[pick[i], :, ys[i]:ys[i] + CROP, xs[i]:xs[i] + CROP].float()
+        y = targets[pick[i], :, ys[i]:ys[i] + CROP, xs[i]:xs[i] + CROP].float()
+        if flips[i]:
+            x, y = x.flip(-1), y.flip(-1)
+            x[TANGENT_X::6] *= -1
+        x_batch.append(x)
+        y_batch.append(y)
+    return torch.stack(x_batch), torch.stack(y_batch)
+
+
+def validation_loss(model, inputs, targets) -> float:
+    if inputs is None:
+        return float("nan")
+    model.eval()
+    total = 0.0
+    with torch.no_grad():
+        for i in range(len(inputs)):
+            total += float(hair_loss(model(inputs[i:i + 1].float()), targets[i:i + 1].float()))
+    model.train()
+    return total / len(inputs)
+
+
+def train(data: Path, config_name: str, budget_s: float, work: Path, resume: bool = False, batch: int = 8,
+          lr: float = 1e-3, seed: int = 0, progress=lambda fraction, message: None) -> dict:
+    config = HairNetConfig.named(config_name)
+    torch.manual_seed(seed)
+    train_x, train_y, val_x, val_y = load_pairs(data, config.samples)
+    model = HairUNet(config)
+    optimizer = torch.optim.Adam(model.parameters(), lr=lr)
+    generator = torch.Generator().manual_seed(seed)
+    checkpoint = work / f"hair_{config.name}.ckpt.pt"
+    state = {"step": 0, "elapsed_s": 0.0, "history": [], "best_validation": float("inf")}
+    best_weights = None
+    if resume and checkpoint.is_file():
+        saved = torch.load(checkpoint, map_location="cpu", weights_only=True)
+        model.load_state_dict(saved["model"])
+        optimizer.load_state_dict(saved["optimizer"])
+        best_weights = saved["best"]
+        state = json.loads(saved["state_json"])
+        generator.manual_seed(seed + state["step"])
+    steps_per_epoch = max(1, len(train_x) * (train_x.shape[-1] // CROP) * (train_x.shape[-2] // CROP) // batch)
+    start = time.monotonic() - state["elapsed_s"]
+    while time.monotonic() - start < budget_s:
+        running = 0.0
+        for _ in range(steps_per_epoch):
+            x, y = random_crops(train_x, train_y, batch, generator)
+            optimizer.zero_grad()
+            loss = hair_loss(model(x), y)
+            loss.backward()
+            optimizer.step()
+            running += float(loss)
+            state["step"] += 1
+            elapsed = time.monotonic() - start
+            progress(min(elapsed / budget_s, 1.0), f"step {state['step']} loss {float(loss):.5f}")
+            if elapsed >= budget_s:
+                break
+        val = validation_loss(model, val_x, val_y)
+        state["elapsed_s"] = time.monotonic() - start
+        state["history"].append({"step": state["step"], "seconds": round(state["elapsed_s"], 1),
+                                 "train_loss": running / steps_per_epoch, "validation_loss": val})
+        if not val >= state["best_validation"]:  # NaN validation (no pairs) keeps the latest weights
+            state["best_validation"] = val
+            best_weights = {k: v.clone() for k, v in model.state_dict().items()}
+        work.mkdir(parents=True, exist_ok=True)
+        with atomic_output(checkpoint, suffix=".tmp.pt") as tmp:
+            torch.save({"model": model.state_dict(), "optimizer": optimizer.state_dict(),
+                        "best": best_weights, "state_json": json.dumps(state)}, tmp)
+    model.load_state_dict(best_weights)
+    return {"model": model, "config": config.name, "train_pairs": len(train_x),
+            "validation_pairs": 0 if val_x is None else len(val_x), **state}
+
+
+def main(argv=None) -> int:
+    from headless.bake import Reporter
+
+    p = argparse.ArgumentParser(prog="python -m training.hair_train", description=__doc__.splitlines()[0])
+    p.add_argument("--data", type=Path, required=True, help="the train/ directory of a hair dataset")
+    p.add_argument("--config", default="base", choices=sorted(CONFIGS))
+    p.add_argument("--budget", type=float, default=900.0, help="training seconds")
+    p.add_argument("--out", type=Path, required=True, help="ONNX file to write")
+    p.add_argument("--work", type=Path, default=Path("bench_out/hair_work"), help="checkpoints")
+    p.add_argument("--resume", action="store_true")
+    p.add_argument("--threads", type=int, default=0)
+    ns = p.parse_args(argv)
+    if ns.threads:
+        torch.set_num_threads(ns.threads)
+    reporter = Reporter(as_json=False)
+    try:
+        result = train(ns.data, ns.config, ns.budget, ns.work, ns.resume,
+                       progress=lambda f, m: reporter.progress("train", f, m))
+    except (FileNotFoundError, ValueError) as error:
+        reporter.end_bar()
+        print(f"error: {error}", file=sys.stderr)
+        return 1
+    reporter.end_bar()
+    export_onnx(result["model"], ns.out, metadata={"train_pairs": result["train_pairs"],
+                                                   "steps": result["step"],
+                                                   "best_validation_loss": f"{result['best_validation']:.6g}"})
+    history = result["history"]
+    with atomic_output(ns.out.with_suffix(".json")) as tmp:
+        tmp.write_text(json.dumps({k: v for k, v in result.items() if k != "model"}, indent=1))
+    print(f"hair filter {result['config']}: {result['step']} steps, {len(history)} epochs, "
+          f"validation loss {result['best_validation']:.5f} -> {ns.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
