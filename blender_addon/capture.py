@@ -271,7 +271,7 @@ def _plan_layout(objects, settings, lightmap_uv_layer, warnings):
     return tiles, atlas_w, atlas_h
 
 
-def _scene_bvh(scene, depsgraph):
+def scene_bvh(scene, depsgraph):
     """World-space BVH of every visible mesh (winding made outward for negative scale) and the length of
     the scene's bounding-box diagonal."""
     vertices, polygons, offset = [], [], 0
@@ -453,7 +453,7 @@ def capture(scene, plan, out_dir, *, lightmap_uv_layer: str = "", progress=_noop
             raise BakeInputError(f"no texel was produced at {plan.settings.texel_density:g} texels/m; "
                                  "raise the texel density")
         progress(0.5, "push-out of texels inside geometry")
-        bvh, scene_size = _scene_bvh(scene, depsgraph)
+        bvh, scene_size = scene_bvh(scene, depsgraph)
     rows, cols = np.nonzero(covered)
     offset = ray_offset(maps["P"][rows, cols], maps["texel_size"][rows, cols])
     if should_cancel():

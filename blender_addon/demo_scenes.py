@@ -265,6 +265,8 @@ def build_hair(scene, style="wavy"):
         if node.type != "OUTPUT_MATERIAL":
             nodes.remove(node)
     bsdf = nodes.new("ShaderNodeBsdfHairPrincipled")
+    bsdf.parametrization = "COLOR"
+    bsdf.inputs["Color"].default_value = (0.32, 0.17, 0.08, 1.0)  # light brown (the filter reads this colour)
     hair_material.node_tree.links.new(bsdf.outputs[0], nodes["Material Output"].inputs["Surface"])
     curves = bpy.data.hair_curves.new(f"Hair {style}")
     curves.materials.append(hair_material)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import tempfile
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import bpy
@@ -316,3 +317,155 @@ def dataset_groom(style: str, density: float):
     for obj in objects:
         _set_modifier_inputs(obj.modifiers["Generate Hair Curves"], {"Density": density})
     return scene, objects
+
+
+# ---------------------------------------------------------------- Filter Hair (panel and headless)
+
+@dataclass
+class HairFilterResult:
+    image: np.ndarray  # (H, W, 3) linear, the filtered hair over the background
+    unfiltered: np.ndarray  # (H, W, 3) the same with plain stochastic transparency (what the filter saw)
+    outputs: np.ndarray  # (3, H, W) filtered colour factor, highlight, alpha
+    paths: dict
+    seconds: dict
+    warnings: list = field(default_factory=list)
+
+
+def opaque_depth(scene, depsgraph, camera: PinholeCamera, pixels: np.ndarray, exclude=()) -> np.ndarray:
+    """(H*W,) view depth of the nearest opaque (mesh) surface at the given pixel centres, +inf elsewhere."""
+    try:
+        from .capture import scene_bvh
+    except ImportError:
+        from blender_addon.capture import scene_bvh
+    depth = np.full(camera.width * camera.height, np.inf)
+    bvh, _ = scene_bvh(scene, depsgraph)
+    if bvh is None or len(pixels) == 0:
+        return depth
+    m = np.asarray(camera.world_to_camera, np.float64)
+    rotation_t = m[:3, :3].T
+    eye = camera.position
+    ys, xs = np.divmod(pixels, camera.width)
+    px = (xs + 0.5 - camera.width / 2 - camera.shift_px[0]) / camera.focal_px
+    py = -(ys + 0.5 - camera.height / 2 + camera.shift_px[1]) / camera.focal_px
+    directions = np.stack([px, py, -np.ones_like(px)], axis=1) @ rotation_t.T
+    origin = Vector(tuple(eye))
+    for pixel, direction in zip(pixels.tolist(), directions.tolist()):
+        hit, _, _, distance = bvh.ray_cast(origin, Vector(direction))
+        if hit is not None:
+            depth[pixel] = distance / float(np.linalg.norm(direction))  # along the ray -> view depth
+    return depth
+
+
+def render_background(scene, camera_obj, width: int, height: int, samples: int, exclude) -> np.ndarray:
+    """Cycles render of the scene without the hair objects, through the scene's camera: (H, W, 3) linear."""
+    try:
+        from .render import render_still
+    except ImportError:
+        from blender_addon.render import render_still
+    created = []
+    try:
+        temp = bpy.data.scenes.new(f"{TEMP_PREFIX} background")
+        created.append((bpy.data.scenes, temp))
+        excluded = {obj.name for obj in exclude}
+        for obj in scene.objects:
+            if not obj.hide_render and obj.name not in excluded:
+                temp.collection.objects.link(obj)
+        temp.world = scene.world
+        temp.camera = camera_obj
+        render = temp.render
+        render.engine = "CYCLES"
+        render.resolution_x, render.resolution_y, render.resolution_percentage = width, height, 100
+        render.use_compositing = render.use_sequencer = False
+        render.image_settings.file_format = "OPEN_EXR"
+        render.image_settings.color_depth = "32"
+        temp.view_settings.view_transform = "Standard"
+        temp.cycles.device = "CPU"
+        temp.cycles.samples = samples
+        temp.cycles.use_denoising = samples >= 16
+        with tempfile.TemporaryDirectory(prefix="sglf_hair_") as tmp:
+            return render_still(temp, Path(tmp) / "background.exr").astype(np.float64)
+    finally:
+        for collection, block in reversed(created):
+            try:
+                collection.remove(block)
+            except (ReferenceError, RuntimeError):
+                pass
+
+
+def filter_hair(scene, out_dir, model_path=None, width: int | None = None, height: int | None = None,
+                background_samples: int = 16, progress=lambda fraction, message: None) -> HairFilterResult:
+    """Render the cheap stochastic input for the scene's camera, filter it with the ONNX model through
+    onnxruntime, composite colour factor x hair colour + highlight over a Cycles render of the rest of the
+    scene, and write filtered.exr / filtered.png / unfiltered.png / hair_filter.json into out_dir."""
+    try:
+        from ..shaders.bake_report import save_png
+        from ..shaders.hair_filter import load_filter
+        from ..shaders.hair_raster import composite, covered_pixels, hair_color_map, render_stochastic
+        from ..shaders.image_metrics import tonemap
+        from ..shaders.atomic import atomic_output
+        from ..shaders.exr_io import write_exr
+    except ImportError:
+        from shaders.atomic import atomic_output
+        from shaders.bake_report import save_png
+        from shaders.exr_io import write_exr
+        from shaders.hair_filter import load_filter
+        from shaders.hair_raster import composite, covered_pixels, hair_color_map, render_stochastic
+        from shaders.image_metrics import tonemap
+    import json
+    import time
+
+    warnings, seconds = [], {}
+    objects = hair_objects(scene)
+    if not objects:
+        raise BakeInputError(f"scene '{scene.name}' has no hair to filter (no render-visible curves object)")
+    hair_filter = load_filter(model_path)  # a bad model fails before any rendering
+    out_dir = Path(out_dir)
+    with active_scene(scene):
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        camera = pinhole_camera(scene, depsgraph, width=width, height=height)
+        strands = strands_from_objects(objects, depsgraph)
+        low, high = strands.bounds()
+        to_light, irradiance, light_name = key_light(scene, depsgraph, (low + high) / 2)
+        colors, notes = zip(*(hair_color(obj) for obj in objects))
+        warnings += [note for note in notes if note]
+        if len({tuple(np.round(c, 3)) for c in colors}) > 1:
+            warnings.append(f"{len(objects)} hair objects with different colours: the filter knows one colour, "
+                            "so each pixel takes the mean colour of the grooms its samples hit")
+        progress(0.05, "depth of the opaque scene")
+        start = time.perf_counter()
+        depth_map = opaque_depth(scene, depsgraph, camera, covered_pixels(strands, camera))  # only where hair is
+        seconds["opaque_depth"] = time.perf_counter() - start
+        progress(0.15, f"stochastic input ({hair_filter.samples} spp)")
+        start = time.perf_counter()
+        stochastic = render_stochastic(strands, camera, to_light, hair_filter.samples,
+                                       opaque_depth=depth_map.reshape(camera.height, camera.width))
+        seconds["stochastic_input"] = time.perf_counter() - start
+        progress(0.35, "filtering (onnxruntime)")
+        start = time.perf_counter()
+        outputs, padded = hair_filter.filter(stochastic)
+        seconds["filter"] = time.perf_counter() - start
+        if padded:
+            warnings.append(f"{camera.width}x{camera.height} is not a multiple of the network's stride "
+                            f"{hair_filter.stride}: padded with empty pixels and cropped back")
+        progress(0.45, f"background ({background_samples} spp Cycles)")
+        start = time.perf_counter()
+        background = render_background(scene, scene.camera, camera.width, camera.height, background_samples,
+                                       objects)
+        seconds["background"] = time.perf_counter() - start
+    color_map = hair_color_map(stochastic.extras["groom"], np.array(colors))
+    image = composite(outputs, color_map, background, irradiance)
+    unfiltered = composite(stochastic.unfiltered(), color_map, background, irradiance)
+    paths = {"filtered_exr": out_dir / "filtered.exr", "filtered_png": out_dir / "filtered.png",
+             "unfiltered_png": out_dir / "unfiltered.png", "summary": out_dir / "hair_filter.json"}
+    write_exr(paths["filtered_exr"], image.astype(np.float32), precision="half")
+    save_png(paths["filtered_png"], tonemap(image), min_width=1)
+    save_png(paths["unfiltered_png"], tonemap(unfiltered), min_width=1)
+    summary = {"model": str(hair_filter.path), "config": hair_filter.config, "samples": hair_filter.samples,
+               "size": [camera.width, camera.height], "key_light": light_name,
+               "hair_objects": [obj.name for obj in objects], "warnings": warnings,
+               "seconds": {k: round(v, 3) for k, v in seconds.items()}}
+    with atomic_output(paths["summary"]) as tmp:
+        tmp.write_text(json.dumps(summary, indent=1))
+    progress(1.0, "done")
+    return HairFilterResult(image, unfiltered, outputs, paths, seconds, warnings)
+

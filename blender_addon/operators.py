@@ -1,4 +1,4 @@
-"""Operators: Bake SG Lightfield (modal, cancellable), Cancel, Remove SG Bake, Show Plan, Open Report."""
+"""Operators: Bake SG Lightfield (modal, cancellable), Cancel, Remove SG Bake, Show Plan, Open Report, Filter Hair."""
 from __future__ import annotations
 
 import os
@@ -35,14 +35,18 @@ def settings_from_panel(panel) -> BakeSettings:
                                     training_budget_s=panel.training_budget_s, device=device)
 
 
-def bake_directory(panel) -> str:
-    path = panel.output_dir.strip()
+def settings_path(text: str, what: str) -> str:
+    """An absolute path from a path setting ("//" = beside the .blend), or a BakeInputError saying why not."""
+    path = text.strip()
     if not path:
-        raise BakeInputError("set a bake directory")
+        raise BakeInputError(f"set a {what}")
     if path.startswith("//") and not bpy.data.filepath:
-        raise BakeInputError("save the .blend first, or choose an absolute bake directory (it is relative: "
-                             f"{path})")
+        raise BakeInputError(f"save the .blend first, or choose an absolute {what} (it is relative: {path})")
     return os.path.normpath(bpy.path.abspath(path))
+
+
+def bake_directory(panel) -> str:
+    return settings_path(panel.output_dir, "bake directory")
 
 
 def torch_python_preference(context) -> str:
@@ -223,7 +227,62 @@ class SGLF_OT_open_report(bpy.types.Operator):
         return {"CANCELLED"}
 
 
-_classes = (SGLF_OT_bake, SGLF_OT_cancel, SGLF_OT_remove_bake, SGLF_OT_show_plan, SGLF_OT_open_report)
+class SGLF_OT_filter_hair(bpy.types.Operator):
+    """Render the scene's hair with a few stochastic samples and filter it with the hair U-Net (onnxruntime),
+    composited over a Cycles render of the rest of the scene; the result opens as the image 'Filtered Hair'"""
+
+    bl_idname = "sg_lightfield.filter_hair"
+    bl_label = "Filter Hair"
+
+    @classmethod
+    def poll(cls, context):
+        return context.scene is not None and context.scene.name not in _jobs
+
+    def execute(self, context):
+        try:
+            from ..shaders.hair_filter import HairFilterError
+            from . import hair
+        except ImportError:
+            from blender_addon import hair
+            from shaders.hair_filter import HairFilterError
+        panel = context.scene.sg_lightfield
+        window_manager = context.window_manager
+        window_manager.progress_begin(0, 100)
+
+        def progress(fraction, message):
+            window_manager.progress_update(int(100 * fraction))
+            if context.workspace is not None:
+                context.workspace.status_text_set(f"Filter Hair: {message}")
+
+        try:
+            out_dir = settings_path(panel.hair_output_dir, "hair output directory")
+            model = settings_path(panel.hair_model, "hair filter model") if panel.hair_model.strip() else None
+            result = hair.filter_hair(context.scene, out_dir, model_path=model,
+                                      background_samples=panel.hair_background_samples, progress=progress)
+        except (BakeInputError, HairFilterError, OSError) as exc:
+            self.report({"ERROR"}, f"Filter Hair: {exc}")
+            return {"CANCELLED"}
+        finally:
+            window_manager.progress_end()
+            if context.workspace is not None:
+                context.workspace.status_text_set(None)
+        path = str(result.paths["filtered_exr"])
+        image = next((im for im in bpy.data.images if bpy.path.abspath(im.filepath) == path), None)
+        if image is None:
+            image = bpy.data.images.load(path)
+            image.name = "Filtered Hair"
+        else:
+            image.reload()
+        for warning in result.warnings:
+            self.report({"WARNING"}, f"Filter Hair: {warning}")
+        total = sum(result.seconds.values())
+        self.report({"INFO"}, f"Filter Hair: {image.size[0]}x{image.size[1]} in {total:.1f} s "
+                              f"(filter {result.seconds['filter']:.2f} s) -> {path}")
+        return {"FINISHED"}
+
+
+_classes = (SGLF_OT_bake, SGLF_OT_cancel, SGLF_OT_remove_bake, SGLF_OT_show_plan, SGLF_OT_open_report,
+            SGLF_OT_filter_hair)
 
 
 def register():

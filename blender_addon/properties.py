@@ -40,6 +40,13 @@ class SGLightfieldSettings(bpy.types.PropertyGroup):
     output_dir: StringProperty(name="Bake Directory", description="Where the bake writes its files",
                                default="//sg_bake", subtype="DIR_PATH",
                                options=_BLEND_RELATIVE)
+    hair_model: StringProperty(name="Hair Filter Model", subtype="FILE_PATH", default="", options=_BLEND_RELATIVE,
+                               description="ONNX hair filter to use; empty: the Base model shipped with the extension")
+    hair_output_dir: StringProperty(name="Hair Output", subtype="DIR_PATH", default="//hair_filter",
+                                    options=_BLEND_RELATIVE,
+                                    description="Where Filter Hair writes filtered.exr, the PNGs and a summary")
+    hair_background_samples: IntProperty(name="Background Samples", default=16, min=1, max=4096,
+                                          description="Cycles samples for the scene behind the hair")
     # Progress shown by the panel while a bake runs (written by the operator, read by the UI).
     is_baking: BoolProperty(default=False, options={"SKIP_SAVE"})
     progress: FloatProperty(default=0.0, min=0.0, max=1.0, subtype="FACTOR", options={"SKIP_SAVE"})

@@ -35,6 +35,13 @@ def draw_sg_lightfield(layout, context):
     row.operator("sg_lightfield.bake", icon="RENDER_STILL")
     row.operator("sg_lightfield.remove_bake", icon="LOOP_BACK")
     layout.operator("sg_lightfield.open_report", icon="TEXT")
+    if any(obj.type == "CURVES" for obj in context.scene.objects):
+        box = layout.box()
+        box.label(text="Hair Filter", icon="CURVES")
+        box.prop(settings, "hair_model")
+        box.prop(settings, "hair_output_dir")
+        box.prop(settings, "hair_background_samples")
+        box.operator("sg_lightfield.filter_hair", icon="RENDER_STILL")
 
 
 class SGLF_PT_render(bpy.types.Panel):

@@ -250,6 +250,13 @@ def rasterize_lines(strands: Strands, x, y, depth, width: int, height: int) -> F
                      strands.radius[sa] + (strands.radius[sb] - strands.radius[sa]) * tw, curve, length_in_pixel)
 
 
+def covered_pixels(strands: Strands, camera: PinholeCamera, subdivisions: int = 4) -> np.ndarray:
+    """Flat indices of the pixels the strands' lines cross (where an opaque-depth lookup is needed)."""
+    fine = subdivide_catmull_rom(strands, subdivisions) if subdivisions > 1 else strands
+    x, y, depth = camera.project(fine.world)
+    return np.unique(rasterize_lines(fine, x, y, depth, camera.width, camera.height).pixel)
+
+
 def strand_lobes(tangent, to_light, to_viewer, shading: HairShading):
     """(colour factor without ambient, highlight) of Paper II Fig. 3 with the half-vector specular angle."""
     cos_tl = np.clip(np.sum(tangent * to_light, axis=-1), -1, 1)

@@ -47,14 +47,15 @@ def load_pairs(directory, samples: int):
 
 def random_crops(inputs, targets, batch: int, generator: torch.Generator):
     n, _, h, w = inputs.shape
+    crop = min(CROP, h, w)
     pick = torch.randint(0, n, (batch,), generator=generator)
-    ys = torch.randint(0, h - CROP + 1, (batch,), generator=generator)
-    xs = torch.randint(0, w - CROP + 1, (batch,), generator=generator)
+    ys = torch.randint(0, h - crop + 1, (batch,), generator=generator)
+    xs = torch.randint(0, w - crop + 1, (batch,), generator=generator)
     flips = torch.rand(batch, generator=generator) < 0.5
     x_batch, y_batch = [], []
     for i in range(batch):
-        x = inputs[pick[i], :, ys[i]:ys[i] + CROP, xs[i]:xs[i] + CROP].float()
-        y = targets[pick[i], :, ys[i]:ys[i] + CROP, xs[i]:xs[i] + CROP].float()
+        x = inputs[pick[i], :, ys[i]:ys[i] + crop, xs[i]:xs[i] + crop].float()
+        y = targets[pick[i], :, ys[i]:ys[i] + crop, xs[i]:xs[i] + crop].float()
         if flips[i]:
             x, y = x.flip(-1), y.flip(-1)
             x[TANGENT_X::6] *= -1
@@ -93,7 +94,8 @@ def train(data: Path, config_name: str, budget_s: float, work: Path, resume: boo
         best_weights = saved["best"]
         state = json.loads(saved["state_json"])
         generator.manual_seed(seed + state["step"])
-    steps_per_epoch = max(1, len(train_x) * (train_x.shape[-1] // CROP) * (train_x.shape[-2] // CROP) // batch)
+    crops_per_image = max(1, train_x.shape[-1] // CROP) * max(1, train_x.shape[-2] // CROP)
+    steps_per_epoch = max(1, len(train_x) * crops_per_image // batch)
     start = time.monotonic() - state["elapsed_s"]
     while time.monotonic() - start < budget_s:
         running = 0.0

@@ -1,0 +1,302 @@
+"""The hair tool end to end: the numpy stochastic-transparency renderer, the Cycles reference it is trained
+against, training pairs on disk, training with checkpoints and resume, the onnxruntime filter with its bad
+inputs, and the Filter Hair operator and command line on the `hair` demo scene."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from shaders import hair_pairs
+from shaders import hair_raster as hr
+from shaders.hair_filter import SHIPPED_MODEL, HairFilterError, load_filter
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def straight_strands(curves, radius=0.001):
+    """curves: list of (start, end) world points; 4 control points each, model space = world."""
+    points, offsets = [], [0]
+    for start, end in curves:
+        start, end = np.asarray(start, float), np.asarray(end, float)
+        points += [start + (end - start) * t for t in np.linspace(0, 1, 4)]
+        offsets.append(len(points))
+    points = np.array(points)
+    return hr.Strands(points, points, np.full(len(points), radius), np.array(offsets))
+
+
+def front_camera(size=64, view_width=0.2):
+    """Looking along +y from y = -1 at the origin, seeing view_width metres across."""
+    return hr.PinholeCamera(hr.look_at((0, -1, 0), (0, 0, 0)), size / view_width, size, size)
+
+
+# ------------------------------------------------------------------ numpy renderer
+
+def test_catmull_rom_passes_through_the_control_points_and_keeps_curves_apart():
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(9, 3))
+    strands = hr.Strands(points, points, np.linspace(1, 2, 9), np.array([0, 5, 9]), np.array([0, 1]))
+    fine = hr.subdivide_catmull_rom(strands, 4)
+    assert list(fine.offsets) == [0, 17, 30]
+    np.testing.assert_allclose(fine.world[0:17:4], points[0:5], atol=1e-12)
+    np.testing.assert_allclose(fine.world[17::4], points[5:9], atol=1e-12)
+    np.testing.assert_allclose(fine.radius[0:17:4], strands.radius[0:5])
+
+
+def test_alpha_is_the_strand_area_in_the_pixel_at_any_angle():
+    """Sum of per-pixel alpha = opacity x width x length / pixel area, whatever the strand's direction."""
+    camera = front_camera(128, 0.2)
+    pixel = 0.2 / 128
+    for angle in np.radians([0, 17, 45, 80]):
+        direction = np.array([np.cos(angle), 0, np.sin(angle)])
+        strands = straight_strands([(-0.06 * direction, 0.06 * direction)], radius=0.2 * pixel)
+        x, y, depth = camera.project(strands.world)
+        fragments = hr.rasterize_lines(strands, x, y, depth, 128, 128)
+        area = fragments.coverage(1.0, depth[0] / camera.focal_px).sum()
+        expected = (0.12 / pixel) * 0.4  # length in pixels x width in pixels (the strand is 1 m away)
+        assert abs(area / expected - 1) < 0.03, (np.degrees(angle), area, expected)
+
+
+def test_stochastic_transparency_is_unbiased_and_hashing_is_stable():
+    """Eight overlapping strands in front of each other: the mean coverage of many samples approaches
+    1 - prod(1 - alpha_i); the same frame rendered twice gives the same samples."""
+    curves = [((-0.08, 0.002 * k, -0.002 * k), (0.08, 0.002 * k, 0.002 * k)) for k in range(8)]
+    strands = straight_strands(curves, radius=0.0006)
+    camera = front_camera(64, 0.2)
+    shading = hr.HairShading(opacity=0.7)
+    render = hr.render_stochastic(strands, camera, (0, -1, 0), 64, shading=shading)
+    again = hr.render_stochastic(strands, camera, (0, -1, 0), 4, shading=shading)
+    np.testing.assert_array_equal(render.features[:4], again.features)
+    fine = hr.subdivide_catmull_rom(strands)
+    x, y, depth = camera.project(fine.world)
+    fragments = hr.rasterize_lines(fine, x, y, depth, 64, 64)
+    alpha = fragments.coverage(shading.opacity, fragments.depth / camera.focal_px)
+    transmittance = np.ones(64 * 64)
+    np.multiply.at(transmittance, fragments.pixel, 1 - alpha)
+    expected = 1 - transmittance.reshape(64, 64)
+    estimated = render.unfiltered()[2]
+    hit = expected > 0.05
+    assert abs(estimated[hit].mean() / expected[hit].mean() - 1) < 0.05
+    assert abs(estimated.sum() / expected.sum() - 1) < 0.05
+
+
+def test_stochastic_shadow_map_lets_through_one_minus_alpha():
+    """A strand right behind another (seen from the light) is lit with probability 1 - alpha of the front one."""
+    shading = hr.HairShading(opacity=0.6)
+    front = [((-0.05, 0.0, 0.001 * k), (0.05, 0.0, 0.001 * k)) for k in range(40)]
+    back = [((-0.05, 0.02, 0.001 * k), (0.05, 0.02, 0.001 * k)) for k in range(40)]
+    strands = straight_strands(front + back, radius=0.002)
+    shadow = hr.stochastic_shadow_map(strands, (0, -1, 0), shading, size=256)
+    samples = np.stack([np.linspace(-0.04, 0.04, 400), np.full(400, 0.02), np.full(400, 0.02)], axis=1)
+    lit = shadow.lit(samples, bias=0.004).mean()
+    front_alpha = shading.opacity * min(1.0, 2 * 0.002 / shadow.texel)
+    # Strands 1 mm apart and 4 mm wide: each shadow-map texel sees about four front strands.
+    assert 0.0 <= lit < 1 - front_alpha + 0.1
+    assert shadow.lit(samples * [1, 0, 1] - [0, 0.01, 0], bias=0.004).all()  # in front of everything: lit
+
+
+def test_lobes_follow_the_shading_model():
+    """F_d = sin(T, L); R and TRT peak where angle(T, H) + shift = 90 degrees (H = L = V here)."""
+    shading = hr.HairShading()
+    theta = np.radians(np.linspace(0, 180, 18001))
+    tangents = np.stack([np.sin(theta), np.zeros_like(theta), np.cos(theta)], axis=1)
+    up = np.array([0.0, 0.0, 1.0])
+    color, highlight = hr.strand_lobes(tangents, up, up, shading)
+    trt = color - np.sin(theta)
+    assert np.degrees(theta[np.argmax(highlight)]) == pytest.approx(90 - shading.shift_r_deg, abs=0.02)
+    assert np.degrees(theta[np.argmax(trt)]) == pytest.approx(90 - shading.shift_trt_deg, abs=0.02)
+    assert highlight.max() == pytest.approx(1.0) and trt.max() == pytest.approx(1.0)
+    assert highlight[np.abs(np.degrees(theta) - 97) > 15].max() < 0.01  # exponent 250: a narrow lobe
+
+
+def test_composite_and_colour_map():
+    outputs = np.stack([np.full((2, 2), 1.5), np.full((2, 2), 0.25), np.array([[0, 1], [0.5, 1]])])
+    background = np.full((2, 2, 3), 0.2)
+    image = hr.composite(outputs, (0.4, 0.2, 0.1), background, light=2.0)
+    np.testing.assert_allclose(image[0, 0], 0.2)
+    np.testing.assert_allclose(image[0, 1], 2.0 * (1.5 * np.array([0.4, 0.2, 0.1]) + 0.25))
+    grooms = np.array([[[0, 1], [-1, 1]], [[1, 1], [-1, 0]]])
+    colors = np.array([[1.0, 0, 0], [0, 1.0, 0]])
+    color_map = hr.hair_color_map(grooms, colors)
+    np.testing.assert_allclose(color_map[0, 0], [0.5, 0.5, 0])
+    np.testing.assert_allclose(color_map[1, 0], [1, 0, 0])  # no sample: the first groom's colour
+
+
+# ------------------------------------------------------------------ pairs, training, filter
+
+def test_pairs_round_trip_and_split(tmp_path):
+    rng = np.random.default_rng(1)
+    features = rng.random((4, 6, 16, 24)).astype(np.float32)
+    target = rng.random((3, 16, 24)).astype(np.float32)
+    hair_pairs.write_pair(tmp_path, 9, features, target, {"style": "wavy"})
+    x, y, meta = hair_pairs.read_pair(tmp_path, 9)
+    np.testing.assert_allclose(x, features.reshape(24, 16, 24), atol=2e-3)
+    np.testing.assert_allclose(y, target, atol=2e-3)
+    assert meta["split"] == "validation" and meta["style"] == "wavy"
+    assert [hair_pairs.split_of(i) for i in range(20)].count("validation") == 2
+    hair_pairs.pair_paths(tmp_path, 3)[0].write_bytes(b"partial")  # EXR without JSON: incomplete
+    assert hair_pairs.complete_indices(tmp_path) == [9]
+
+
+def _tiny_dataset(directory, pairs=10, size=32):
+    """Synthetic strands through the real renderer; the 64-sample unfiltered render stands in as target."""
+    rng = np.random.default_rng(3)
+    curves = [(rng.uniform(-0.1, 0.1, 3), rng.uniform(-0.1, 0.1, 3)) for _ in range(60)]
+    strands = straight_strands(curves, radius=0.0008)
+    for index in range(pairs):
+        camera = hr.random_camera(rng, *strands.bounds(), size)
+        light = hr.random_light(rng)
+        render = hr.render_stochastic(strands, camera, light, 16, shadow_map_size=128)
+        hair_pairs.write_pair(directory, index, render.features[:4], render.unfiltered(), {"style": "synthetic"})
+
+
+def test_training_checkpoints_resumes_and_exports_a_filter_onnxruntime_agrees_with(tmp_path):
+    import torch
+
+    from training import hair_train
+    from training.hair_unet import HairNetConfig, HairUNet
+
+    _tiny_dataset(tmp_path / "data")
+    first = hair_train.train(tmp_path / "data", "small", 3.0, tmp_path / "work", batch=4)
+    checkpoint = tmp_path / "work" / "hair_small.ckpt.pt"
+    assert checkpoint.is_file() and first["step"] > 0 and first["validation_pairs"] == 1
+    resumed = hair_train.train(tmp_path / "data", "small", 6.0, tmp_path / "work", resume=True, batch=4)
+    assert resumed["step"] > first["step"]
+    assert [h["step"] for h in resumed["history"][:len(first["history"])]] == [h["step"] for h in first["history"]]
+    from training.hair_unet import export_onnx
+
+    path = export_onnx(resumed["model"], tmp_path / "small.onnx", metadata={"steps": resumed["step"]})
+    hair_filter = load_filter(path)
+    assert (hair_filter.config, hair_filter.samples, hair_filter.stride) == ("small", 4, 8)
+    x, _, _ = hair_pairs.read_pair(tmp_path / "data", 0)
+    x = x[None, :, :30, :27]  # not a multiple of the stride: padded and cropped back
+    got, padded = hair_filter.run(x)
+    assert padded and got.shape == (3, 30, 27)
+    model = resumed["model"].eval()
+    with torch.no_grad():
+        expected = model(torch.nn.functional.pad(torch.from_numpy(x), (0, 5, 0, 2)))[0, :, :30, :27].numpy()
+    np.testing.assert_allclose(got, expected, atol=1e-4, rtol=1e-4)
+    bare = HairUNet(HairNetConfig.named("small"))
+    torch.onnx.export(bare, torch.zeros(1, 24, 16, 16), str(tmp_path / "foreign.onnx"), dynamo=False)
+    with pytest.raises(HairFilterError, match="not an SG Lightfield hair filter"):
+        load_filter(tmp_path / "foreign.onnx")
+
+
+def test_bad_model_files_give_one_clear_message(tmp_path):
+    with pytest.raises(HairFilterError, match="not found"):
+        load_filter(tmp_path / "missing.onnx")
+    corrupt = tmp_path / "corrupt.onnx"
+    corrupt.write_bytes(SHIPPED_MODEL.read_bytes()[:2000])
+    with pytest.raises(HairFilterError, match="not a readable ONNX file"):
+        load_filter(corrupt)
+
+
+def test_the_shipped_model_is_a_base_filter_with_its_reproduction_recipe():
+    hair_filter = load_filter()
+    assert (hair_filter.config, hair_filter.samples, hair_filter.stride) == ("base", 4, 8)
+    recipe = json.loads(SHIPPED_MODEL.with_suffix(".json").read_text())
+    assert recipe["train_pairs"] >= 100 and recipe["step"] > 0
+    assert "command" in recipe
+
+
+# ------------------------------------------------------------------ Blender: reference, operator, CLI
+
+@pytest.mark.slow
+def test_cycles_reference_and_our_renderer_describe_the_same_shading():
+    """Thin unoccluded strands (opacity 0.05): Cycles' colour factor and highlight match the lobes our
+    renderer computes; on the demo groom (opacity 0.7, self-shadowing) the premultiplied means agree."""
+    import bpy
+
+    from blender_addon import hair
+    from blender_addon.demo_scenes import build_demo_scene
+    from blender_addon.scene_analysis import active_scene
+
+    scene = build_demo_scene("demo:hair")
+    objects = hair.hair_objects(scene)
+    with active_scene(scene):
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        strands = hair.strands_from_objects(objects, depsgraph)
+        camera = hair.pinhole_camera(scene, depsgraph, width=64, height=64)
+    for opacity, tolerance in ((0.05, 0.06), (0.7, 0.08)):
+        shading = hr.HairShading(opacity=opacity)
+        for light in ((0.3, -1.0, 0.4), (0.2, 1.0, 0.3)):
+            light = np.array(light) / np.linalg.norm(light)
+            reference = hair.render_reference(objects, camera, light, samples=64, shading=shading)
+            ours = hr.render_stochastic(strands, camera, light, 32, shading=shading).unfiltered()
+            for channel in range(2):
+                ref_mean = (reference[channel] * reference[2]).mean()
+                our_mean = (ours[channel] * ours[2]).mean()
+                assert abs(our_mean / ref_mean - 1) < tolerance + (0.1 if channel == 1 else 0), \
+                    (opacity, light, channel, ref_mean, our_mean)
+            assert abs(ours[2].mean() / reference[2].mean() - 1) < 0.06
+
+
+@pytest.mark.slow
+def test_filter_hair_operator_on_the_hair_scene(tmp_path):
+    import bpy
+
+    import blender_addon
+    from blender_addon.demo_scenes import build_demo_scene
+    from blender_addon.scene_analysis import active_scene
+    from shaders.exr_io import read_exr
+
+    blender_addon.register()
+    try:
+        scene = build_demo_scene("demo:hair")
+        with active_scene(scene):
+            scene.render.resolution_x, scene.render.resolution_y = 100, 75  # not a multiple of 8
+            scene.render.resolution_percentage = 100
+            scene.sg_lightfield.hair_output_dir = str(tmp_path / "hair")
+            scene.sg_lightfield.hair_background_samples = 4
+            assert bpy.ops.sg_lightfield.filter_hair() == {"FINISHED"}
+        image = bpy.data.images["Filtered Hair"]
+        assert tuple(image.size) == (100, 75)
+        pixels, _, _ = read_exr(tmp_path / "hair" / "filtered.exr")
+        assert pixels.shape == (75, 100, 3) and np.isfinite(pixels).all()
+        summary = json.loads((tmp_path / "hair" / "hair_filter.json").read_text())
+        assert summary["key_light"] == "Key" and any("stride" in w for w in summary["warnings"])
+        empty = build_demo_scene("demo:spheres")
+        with active_scene(empty):
+            empty.sg_lightfield.hair_output_dir = str(tmp_path / "none")
+            with pytest.raises(RuntimeError, match="no hair to filter"):
+                bpy.ops.sg_lightfield.filter_hair()
+    finally:
+        blender_addon.unregister()
+
+
+@pytest.mark.slow
+def test_filter_hair_command_line_and_its_bad_input(tmp_path):
+    def run(*args):
+        return subprocess.run([sys.executable, str(REPO / "headless" / "filter_hair.py"), *args],
+                              capture_output=True, text=True, timeout=300)
+
+    ok = run("--scene", "demo:hair", "--out", str(tmp_path / "ok"), "--width", "64", "--height", "48",
+             "--background-samples", "2")
+    assert ok.returncode == 0, ok.stderr
+    assert (tmp_path / "ok" / "filtered.png").is_file() and (tmp_path / "ok" / "unfiltered.png").is_file()
+    no_hair = run("--scene", "demo:spheres", "--out", str(tmp_path / "x"))
+    assert no_hair.returncode == 1 and no_hair.stderr.strip().splitlines()[-1].startswith("error: ")
+    (tmp_path / "bad.onnx").write_text("not a model")
+    bad = run("--scene", "demo:hair", "--out", str(tmp_path / "x"), "--model", str(tmp_path / "bad.onnx"))
+    assert bad.returncode == 1 and "not a readable ONNX file" in bad.stderr
+    assert not (tmp_path / "x" / "filtered.exr").exists()
+
+
+@pytest.mark.slow
+def test_dataset_generation_is_resumable(tmp_path):
+    def run():
+        return subprocess.run([sys.executable, str(REPO / "headless" / "hair_dataset.py"), "--out",
+                               str(tmp_path), "--pairs", "2", "--held-out", "1", "--size", "32",
+                               "--reference-samples", "4", "--density", "5000"],
+                              capture_output=True, text=True, timeout=300)
+
+    first = run()
+    assert first.returncode == 0, first.stderr
+    assert "3 made, 0 already there" in first.stdout
+    assert hair_pairs.complete_indices(tmp_path / "train") == [0, 1]
+    assert json.loads((tmp_path / "held_out" / "pair_00000.json").read_text())["style"] == "clumped"
+    (tmp_path / "train" / "pair_00001.json").unlink()  # as if interrupted while writing pair 1
+    second = run()
+    assert "1 made, 2 already there" in second.stdout
