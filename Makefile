@@ -4,6 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-$(shell cat requirements.txt requirements-extension.txt | cksum | cut -d' ' -f1)
 DEMO_OUT ?= bake_out/spheres
+HAIR_DATA ?= hair_data
 
 .PHONY: demo test test-fast bench check-math extension clean
 
@@ -34,7 +35,8 @@ check-math: $(STAMP)
 	$(PY) -m shaders.check_math
 
 bench: $(STAMP)
-	$(PY) -m headless.bench
+	$(PY) -m pip install --quiet -r requirements-bench.txt
+	$(PY) -m headless.bench --hair-data $(HAIR_DATA)
 
 extension: $(STAMP)
 	$(PY) -m headless.build_extension --out dist

@@ -7,11 +7,18 @@ reference is good enough (noise well below the error). Test: the same views with
 Cycles evaluates through the same node group EEVEE uses (emission only), at the same samples as the reference
 because surfaces the bake leaves alone (rough ones) are still path traced.
 Metrics on tone-mapped images (shaders/image_metrics.py): RMSE, PSNR, FLIP; pictures reference | bake | FLIP.
+EEVEE, the engine the bake is for, renders the same views in a separate process (blender_addon/eevee_worker.py;
+it needs an OpenGL context): its error against the reference, its difference from Cycles' evaluation of the
+same nodes, its first-render time (shader compilation included) and pictures reference | EEVEE | FLIP.
 Nothing of the scene changes: temporary cameras and material swaps are undone before returning.
 """
 from __future__ import annotations
 
 import math
+import os
+import re
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -25,10 +32,14 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.bake_report import save_png, update_report
     from ..shaders.image_metrics import flip, heat, psnr, rmse, tonemap
     from .apply import BAKE_RECORD_KEY, baked_slots
-    from .render import render_still
+    from ..shaders.exr_io import read_exr
+    from .render import quiet_stdout, render_still
+    from .scene_analysis import active_scene
 except ImportError:  # bpy as a module with the repository on sys.path
     from blender_addon.apply import BAKE_RECORD_KEY, baked_slots
-    from blender_addon.render import render_still
+    from blender_addon.render import quiet_stdout, render_still
+    from blender_addon.scene_analysis import active_scene
+    from shaders.exr_io import read_exr
     from shaders.bake_plan import BakeInputError
     from shaders.bake_report import save_png, update_report
     from shaders.image_metrics import flip, heat, psnr, rmse, tonemap
@@ -75,8 +86,35 @@ def _render(scene, camera, path, samples, seed):
     return render_still(scene, path).astype(np.float64)
 
 
+EEVEE_WORKER = Path(__file__).resolve().parent / "eevee_worker.py"
+EEVEE_SAMPLES = 16
+
+
+def render_eevee(scene, camera_names, work_dir: Path, samples: int = EEVEE_SAMPLES, timeout_s: float = 900.0):
+    """EEVEE renders of the scene as it is now, one per camera, by a separate process working on a saved copy:
+    ([(H, W, 3) images], [seconds per render]). The first render's time includes shader compilation."""
+    blend = work_dir / "eevee_views.blend"
+    with active_scene(scene), quiet_stdout():
+        bpy.ops.wm.save_as_mainfile(filepath=str(blend), copy=True)
+    arguments = [str(blend), scene.name, str(work_dir), "--cameras", ",".join(camera_names),
+                 "--samples", str(samples)]
+    if bpy.app.binary_path:  # inside Blender: a background Blender runs the worker
+        command = [bpy.app.binary_path, "-b", "--factory-startup", "--python", str(EEVEE_WORKER), "--", *arguments]
+    else:  # bpy as a module: the same Python runs it
+        command = [sys.executable, str(EEVEE_WORKER), *arguments]
+    out = subprocess.run(command, capture_output=True, text=True, timeout=timeout_s,
+                         env={**os.environ, "PYTHONPATH": ""})
+    if out.returncode != 0:
+        tail = (out.stderr or out.stdout).strip().splitlines()[-1:] or ["no output"]
+        raise RuntimeError(f"EEVEE render process failed ({out.returncode}): {tail[0]}")
+    seconds = [float(m.group(1)) for m in re.finditer(r"^SECONDS BLENDER_EEVEE \d+ ([0-9.]+)$", out.stdout, re.M)]
+    images = [read_exr(work_dir / f"BLENDER_EEVEE_{k}.exr", channels=["R", "G", "B"])[0].astype(np.float64)
+              for k in range(len(camera_names))]
+    return images, seconds
+
+
 def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144), reference_samples: int = 128,
-                   test_samples: int | None = None) -> dict:
+                   test_samples: int | None = None, with_eevee: bool = True) -> dict:
     """test_samples defaults to reference_samples: surfaces the bake does not replace (rough materials) are
     still path traced in the test render, and must be as converged as in the reference to compare fairly."""
     test_samples = test_samples or reference_samples
@@ -90,7 +128,7 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144
                  path=render.filepath, samples=cycles.samples, seed=cycles.seed, denoise=cycles.use_denoising,
                  adaptive=cycles.use_adaptive_sampling, camera=scene.camera)
     cameras = _view_cameras(scene, plan, views)
-    results = []
+    results, references, tests, eevee = [], [], [], {}
     try:
         render.engine = "CYCLES"
         render.resolution_x, render.resolution_y, render.resolution_percentage = *resolution, 100
@@ -107,6 +145,8 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144
                     for slot, material in reversed(undo):  # reversed: instances may share one slot
                         slot.material = material
                 reference = 0.5 * (half_a + half_b)
+                references.append(reference)
+                tests.append(ours)
                 ref_ldr, ours_ldr = tonemap(reference), tonemap(ours)
                 mean_flip, flip_map = flip(ref_ldr, ours_ldr)
                 noise = rmse(tonemap(half_a), tonemap(half_b)) / 2
@@ -116,6 +156,8 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144
                          min_width=0)
                 results.append({"view": camera.name, "rmse": rmse(ref_ldr, ours_ldr), "psnr": psnr(ref_ldr, ours_ldr),
                                 "flip": mean_flip, "reference_noise_rmse": noise, "picture": picture})
+            if with_eevee:
+                eevee = _evaluate_eevee(scene, cameras, references, tests, out_dir, Path(tmp))
     finally:
         for camera, temporary in cameras:
             if temporary:
@@ -129,7 +171,31 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144
         cycles.use_adaptive_sampling, scene.camera = saved["adaptive"], saved["camera"]
     errors = {key: float(np.mean([r[key] for r in results])) for key in ("rmse", "psnr", "flip", "reference_noise_rmse")}
     errors["views"] = results
+    errors["eevee"] = eevee
     errors["reference_samples"], errors["test_samples"] = reference_samples, test_samples
     seconds = time.perf_counter() - start
     update_report(out_dir, plan.stage_hash("capture"), timings_s={"evaluate": seconds}, errors=errors)
     return errors
+
+
+def _evaluate_eevee(scene, cameras, references, cycles_tests, out_dir: Path, work_dir: Path) -> dict:
+    """EEVEE against the reference and against Cycles' evaluation of the same baked nodes; pictures per view.
+    A failure to render with EEVEE (no OpenGL on the machine) is reported, not raised."""
+    try:
+        images, seconds = render_eevee(scene, [camera.name for camera, _ in cameras], work_dir)
+    except (RuntimeError, OSError, subprocess.TimeoutExpired) as exc:
+        return {"error": str(exc)}
+    views = []
+    for k, (image, reference, cycles) in enumerate(zip(images, references, cycles_tests)):
+        ref_ldr, eevee_ldr = tonemap(reference), tonemap(image)
+        mean_flip, flip_map = flip(ref_ldr, eevee_ldr)
+        picture = f"evaluate_view{k}_eevee.png"
+        gap = np.ones((ref_ldr.shape[0], 2, 3))
+        save_png(out_dir / picture, np.concatenate([ref_ldr, gap, eevee_ldr, gap, heat(flip_map, 1.0)], axis=1),
+                 min_width=0)
+        views.append({"flip": mean_flip, "psnr": psnr(ref_ldr, eevee_ldr), "rmse": rmse(ref_ldr, eevee_ldr),
+                      "flip_vs_cycles_bake": flip(tonemap(cycles), eevee_ldr)[0], "picture": picture})
+    summary = {key: float(np.mean([v[key] for v in views])) for key in ("flip", "psnr", "rmse", "flip_vs_cycles_bake")}
+    summary.update(views=views, samples=EEVEE_SAMPLES, first_render_s=seconds[0] if seconds else None,
+                   later_render_s=float(np.mean(seconds[1:])) if len(seconds) > 1 else None)
+    return summary

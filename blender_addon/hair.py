@@ -3,12 +3,12 @@ the scene's key light and hair colour, and the background the filtered hair is c
 
 Reference (what the filter is trained to reproduce): Cycles traces the real strands (ribbons of their real
 radius, fibre opacity through a Transparent BSDF mix) with a box pixel filter at many samples per pixel,
-which is the paper's supersample-and-downsample. The lobes of Paper II go into the colours of two closures
-whose response to a sun of strength pi is exactly their colour times the light's visibility:
-  colour factor  Diffuse BSDF, colour F_d + F_TRT, normal = direction to the light  -> Diffuse Direct pass
-  highlight      Translucent BSDF, colour F_R, normal = away from the light         -> Transmission Direct
-so Cycles computes visibility (transparent shadows through the other strands) per sample, and input and
-reference describe the same shading. The passes are alpha-premultiplied; the targets are straight.
+which is the paper's supersample-and-downsample. The lobes of Paper II are the colour of one Translucent
+BSDF, (F_d + F_TRT, F_R, 0), with its normal pointing away from the light: lit by a sun of strength pi its
+response is exactly colour x visibility from either side of the ribbon, so Cycles computes the visibility
+(transparent shadows through the other strands) per sample and input and reference describe the same
+shading. R and G of Combined are alpha-premultiplied; the targets are straight. (Why not Diffuse, passes or
+AOVs: DESIGN.md section 8.)
 """
 from __future__ import annotations
 
@@ -26,10 +26,10 @@ try:
     from ..shaders.exr_io import read_exr
     from ..shaders.hair_raster import HairShading, PinholeCamera, Strands
     from .render import quiet_stdout
-    from .scene_analysis import active_scene
+    from .scene_analysis import active_scene, enable_nodes
 except ImportError:
     from blender_addon.render import quiet_stdout
-    from blender_addon.scene_analysis import active_scene
+    from blender_addon.scene_analysis import active_scene, enable_nodes
     from shaders.bake_plan import BakeInputError
     from shaders.exr_io import read_exr
     from shaders.hair_raster import HairShading, PinholeCamera, Strands
@@ -139,9 +139,9 @@ def hair_color(obj) -> tuple[np.ndarray, str | None]:
 
 
 def _lobe_material(to_light, shading: HairShading):
-    """Diffuse(F_d + F_TRT, N = L) + Translucent(F_R, N = -L), mixed with Transparent by fibre opacity."""
+    """Translucent((F_d + F_TRT, F_R, 0), N = -L), mixed with Transparent by fibre opacity."""
     material = bpy.data.materials.new(f"{TEMP_PREFIX} lobes")
-    material.use_nodes = True
+    enable_nodes(material)
     tree = material.node_tree
     nodes, links = tree.nodes, tree.links
     for node in list(nodes):
@@ -149,7 +149,7 @@ def _lobe_material(to_light, shading: HairShading):
             nodes.remove(node)
     geometry = nodes.new("ShaderNodeNewGeometry")
 
-    def vector_math(operation, a, b=None, value=None):
+    def vector_math(operation, a, b=None):
         node = nodes.new("ShaderNodeVectorMath")
         node.operation = operation
         for index, source in enumerate((a, b)):
@@ -192,8 +192,10 @@ def _lobe_material(to_light, shading: HairShading):
     rgb = nodes.new("ShaderNodeCombineColor")
     links.new(color_factor, rgb.inputs[0])
     links.new(highlight, rgb.inputs[1])
-    # An unlinked Normal socket means "the surface normal", so the light direction goes in through a node;
-    # bump-map correction would bend that normal toward the ribbon's and dim the lobes (up to 3x).
+    # Ribbons face the camera ray; Cycles lets a light behind that face reach only transmission closures and
+    # one in front only reflection ones, except that a transmission closure is sampled on both sides: so
+    # Translucent. An unlinked Normal socket means "the surface normal", so -L goes in through a node, and
+    # bump-map correction (which bends a given normal toward the ribbon's, dimming up to 3x) is off.
     material.cycles.use_bump_map_correction = False
     normal = nodes.new("ShaderNodeCombineXYZ")
     for axis in range(3):
@@ -224,8 +226,10 @@ def render_reference(objects, camera: PinholeCamera, to_light, samples: int = 25
             scene.collection.objects.link(obj)
         world = bpy.data.worlds.new(f"{TEMP_PREFIX} black")
         created.append((bpy.data.worlds, world))
-        world.use_nodes = False
-        world.color = (0.0, 0.0, 0.0)
+        enable_nodes(world)
+        for node in world.node_tree.nodes:
+            if node.type == "BACKGROUND":
+                node.inputs["Strength"].default_value = 0.0
         scene.world = world
         sun = bpy.data.lights.new(f"{TEMP_PREFIX} sun", "SUN")
         created.append((bpy.data.lights, sun))

@@ -168,8 +168,12 @@ def stage_summary(stage: str, result, plan) -> tuple[str, list]:
                 f"RMSE {lf.get('rmse', float('nan')):.4f}"
                 + (f", midpoint RMSE {lf['midpoint']['rmse']:.4f}" if "midpoint" in lf else "")), []
     if stage == "evaluate":
+        eevee = result.get("eevee") or {}
+        eevee_text = (f"; EEVEE FLIP {eevee['flip']:.4f}, PSNR {eevee['psnr']:.2f} dB (first render "
+                      f"{eevee['first_render_s']:.1f} s incl. shaders)" if "flip" in eevee else "")
         return (f"RMSE {result['rmse']:.4f}, PSNR {result['psnr']:.2f} dB, FLIP {result['flip']:.4f} over "
-                f"{len(result['views'])} views (reference noise RMSE {result['reference_noise_rmse']:.4f})"), []
+                f"{len(result['views'])} views (reference noise RMSE {result['reference_noise_rmse']:.4f})"
+                + eevee_text), [f"EEVEE not evaluated: {eevee['error']}"] if "error" in eevee else []
     if stage == "apply":
         return f"{len(result['materials'])} materials baked ({result['nodes']} nodes in '{result['node_group']}')", []
     return "", []

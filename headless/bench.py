@@ -13,6 +13,8 @@ writes them to bench_out/bench.json.
             (with and without the axis-alignment regulariser) at equal training time, fixed SG12 by NNLS
             and L2 SH by least squares: loss, RMSE, held-out midpoint error, bytes per texel; loss-vs-time
             plot and table in bench_out/train_<scene>.png / bench.json.
+  hair      the hair filter (headless/bench_hair.py): onnxruntime time at 1024^2, PSNR/FLIP against Cycles
+            of stochastic transparency, our filter and OIDN, the held-out groom apart; bench_out/hair_rows.png.
 """
 from __future__ import annotations
 
@@ -27,6 +29,7 @@ if __package__ in (None, ""):
 from shaders.bake_plan import PRESETS, BakeSettings, write_json_atomic  # noqa: E402
 
 CAPTURE_TARGET_S = 10.0
+SECTIONS = ("capture", "render", "train", "hair")
 
 
 def bench_capture(scenes, presets, out_root: Path) -> list[dict]:
@@ -245,13 +248,30 @@ def main(argv=None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help="room only, Draft and Preview")
     p.add_argument("--out", type=Path, default=Path("bench_out"))
+    p.add_argument("--sections", default=",".join(SECTIONS), help="comma-separated subset of " + ",".join(SECTIONS))
+    p.add_argument("--hair-data", type=Path, default=Path("hair_data"),
+                   help="hair pairs from headless/hair_dataset.py (the hair section's quality table)")
     ns = p.parse_args(argv)
+    sections = [s for s in ns.sections.split(",") if s]
+    unknown = set(sections) - set(SECTIONS)
+    if unknown:
+        p.error(f"unknown section(s) {sorted(unknown)}; choose from {', '.join(SECTIONS)}")
+    ns.out.mkdir(parents=True, exist_ok=True)
     scenes = ["room"] if ns.quick else ["room", "spheres", "courtyard"]
     presets = ["draft", "preview"] if ns.quick else list(PRESETS)
-    results = {"capture": bench_capture(scenes, presets, ns.out), "render": bench_render(ns.out),
-               "train": [bench_train(ns.out, "spheres", budget_s=30.0 if ns.quick else 120.0)]}
-    if not ns.quick:
-        results["train"].append(bench_train(ns.out, "room", budget_s=300.0, density=8.9))
+    results = {}
+    if "capture" in sections:
+        results["capture"] = bench_capture(scenes, presets, ns.out)
+    if "render" in sections:
+        results["render"] = bench_render(ns.out)
+    if "train" in sections:
+        results["train"] = [bench_train(ns.out, "spheres", budget_s=30.0 if ns.quick else 120.0)]
+        if not ns.quick:
+            results["train"].append(bench_train(ns.out, "room", budget_s=300.0, density=8.9))
+    if "hair" in sections:
+        from headless.bench_hair import bench_hair
+
+        results["hair"] = bench_hair(ns.out, ns.hair_data, ns.quick)
     write_json_atomic(ns.out / "bench.json", results)
     print(f"\nwritten: {ns.out / 'bench.json'}")
     return 0

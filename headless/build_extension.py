@@ -3,7 +3,7 @@
     python -m headless.build_extension --out dist [--wheels DIR]
 Then in Blender: Edit > Preferences > Get Extensions > Install from Disk, and pick the zip.
 
-The add-on imports OpenEXR, xatlas and Pillow inside Blender, which Blender does not ship: their wheels
+The add-on imports OpenEXR, xatlas, Pillow and onnxruntime inside Blender, which Blender does not ship: their wheels
 (requirements-extension.txt, fetched by `make` into .venv/wheels) are bundled and listed in the zip's
 manifest, which then declares the platform those wheels are for.
 """

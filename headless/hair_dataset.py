@@ -64,7 +64,8 @@ def make_pairs(ns, progress) -> dict:
                                        seed=index)
         t2 = time.perf_counter()
         hair_pairs.write_pair(directory, index, stochastic.features, target, {
-            "style": style, "size": ns.size, "light": light.tolist(), "focal_px": camera.focal_px,
+            "style": style, "size": ns.size, "density": ns.density, "light": light.tolist(),
+            "focal_px": camera.focal_px,
             "world_to_camera": np.asarray(camera.world_to_camera).tolist(),
             "reference_samples": ns.reference_samples, "stochastic_s": round(t1 - t0, 3),
             "reference_s": round(t2 - t1, 3), "mean_alpha": round(float(target[2].mean()), 4)})

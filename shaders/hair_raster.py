@@ -238,7 +238,12 @@ def rasterize_lines(strands: Strands, x, y, depth, width: int, height: int) -> F
     pixel = np.floor(py).astype(np.int64) * width + np.floor(px).astype(np.int64)
     curve = curve_of_point[sa]
     _, keep, group = np.unique(curve * (width * height) + pixel, return_index=True, return_inverse=True)
-    length_in_pixel = np.bincount(group.reshape(-1), weights=spacing, minlength=len(keep))
+    group = group.reshape(-1)
+    length_in_pixel = np.bincount(group, weights=spacing, minlength=len(keep))
+    # Mean radius along the piece of strand in the pixel (strands taper: one end's radius would be biased).
+    sample_radius = strands.radius[sa] + (strands.radius[sb] - strands.radius[sa]) * t
+    mean_radius = np.bincount(group, weights=spacing * sample_radius, minlength=len(keep)) / np.maximum(
+        length_in_pixel, 1e-12)
     sa, sb, t, pixel, curve = sa[keep], sb[keep], t[keep], pixel[keep], curve[keep]
     # Perspective-correct position: interpolate in screen space, then undo the projection's 1/z.
     inv = (1 - t) / depth[sa] + t / depth[sb]
@@ -246,8 +251,8 @@ def rasterize_lines(strands: Strands, x, y, depth, width: int, height: int) -> F
     lerp = lambda v: v[sa] + (v[sb] - v[sa]) * tw[:, None]  # noqa: E731
     direction = strands.world[sb] - strands.world[sa]
     direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-12)
-    return Fragments(pixel, 1.0 / inv, lerp(strands.world), lerp(strands.model), direction,
-                     strands.radius[sa] + (strands.radius[sb] - strands.radius[sa]) * tw, curve, length_in_pixel)
+    return Fragments(pixel, 1.0 / inv, lerp(strands.world), lerp(strands.model), direction, mean_radius, curve,
+                     length_in_pixel)
 
 
 def covered_pixels(strands: Strands, camera: PinholeCamera, subdivisions: int = 4) -> np.ndarray:

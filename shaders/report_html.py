@@ -50,6 +50,13 @@ def write_report_html(out_dir) -> Path:
     errors = report.get("errors", {})
     rows += [(f"error {key}", errors.get(key)) for key in ("rmse", "psnr", "flip", "reference_noise_rmse")
              if key in errors]
+    eevee = errors.get("eevee") or {}
+    if "error" in eevee:
+        rows.append(("EEVEE", f"not rendered: {eevee['error']}"))
+    elif eevee:
+        rows += [("EEVEE FLIP vs reference", eevee.get("flip")), ("EEVEE PSNR", eevee.get("psnr")),
+                 ("EEVEE FLIP vs Cycles bake", eevee.get("flip_vs_cycles_bake")),
+                 ("EEVEE first render s (incl. shader compile)", eevee.get("first_render_s"))]
     lightfield = report.get("train", {}).get("metrics", {}).get("lightfield", {})
     rows += [(f"light-field fit {key}", value) for key, value in lightfield.items() if not isinstance(value, dict)]
     if "midpoint" in lightfield:
@@ -63,6 +70,10 @@ def write_report_html(out_dir) -> Path:
     pictures += [(view["picture"], f"{view['view']}: reference | SG bake | FLIP error (FLIP {view['flip']:.4f}, "
                                    f"PSNR {view['psnr']:.2f} dB)") for view in errors.get("views", [])
                  if (out_dir / view["picture"]).is_file()]
+    if eevee and "error" not in eevee:
+        pictures += [(view["picture"], f"view {k}: Cycles reference | EEVEE with the bake | FLIP error "
+                                       f"(FLIP {view['flip']:.4f}, PSNR {view['psnr']:.2f} dB)")
+                     for k, view in enumerate(eevee.get("views", [])) if (out_dir / view["picture"]).is_file()]
     if pictures:
         parts.append("<h2>Pictures</h2>")
     for name, caption in pictures:

@@ -162,6 +162,10 @@ def test_write_back_remove_restores_everything_and_rebake_does_not_pile_up(tmp_p
     errors = evaluate_stage(scene, plan, tmp_path, views=2, resolution=(32, 18), reference_samples=8)
     assert len(errors["views"]) == 2 and all(np.isfinite(errors[k]) for k in ("rmse", "psnr", "flip"))
     assert 0 <= errors["flip"] <= 1 and (tmp_path / "evaluate_view1.png").is_file()
+    eevee = errors["eevee"]  # EEVEE, the engine the bake is for, renders the same views
+    assert "error" not in eevee, eevee
+    assert len(eevee["views"]) == 2 and (tmp_path / "evaluate_view1_eevee.png").is_file()
+    assert eevee["flip_vs_cycles_bake"] < eevee["flip"] + 0.05 and eevee["first_render_s"] > 0
     assert set(bpy.data.objects.keys()) == objects_before  # temporary cameras removed
     assert ball.material_slots[0].material.name == "Glossy (SG bake)"  # swaps for the reference undone
     report = json.loads((tmp_path / "report.json").read_text())
@@ -213,12 +217,12 @@ def test_eevee_renders_the_baked_scene_like_cycles_evaluates_it(tmp_path):
     blend = tmp_path / "baked.blend"
     with active_scene(scene), quiet_stdout():
         bpy.ops.wm.save_as_mainfile(filepath=str(blend), copy=True)
-    script = Path(__file__).resolve().parent / "eevee_render.py"
-    out = subprocess.run([sys.executable, str(script), str(blend), scene.name, str(tmp_path)], capture_output=True,
-                         text=True, timeout=600)
+    script = Path(__file__).resolve().parent.parent / "blender_addon" / "eevee_worker.py"
+    out = subprocess.run([sys.executable, str(script), str(blend), scene.name, str(tmp_path),
+                          "--engines", "BLENDER_EEVEE,CYCLES"], capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-2000:]
-    eevee, _, _ = read_exr(tmp_path / "BLENDER_EEVEE.exr", channels=["R", "G", "B"])
-    cycles, _, _ = read_exr(tmp_path / "CYCLES.exr", channels=["R", "G", "B"])
+    eevee, _, _ = read_exr(tmp_path / "BLENDER_EEVEE_0.exr", channels=["R", "G", "B"])
+    cycles, _, _ = read_exr(tmp_path / "CYCLES_0.exr", channels=["R", "G", "B"])
     difference = np.abs(tonemap(eevee) - tonemap(cycles))
     assert tonemap(cycles).max() > 0.3  # the picture is not empty
     assert difference.mean() < 0.005, difference.mean()  # same nodes, two engines (measured 4e-4)

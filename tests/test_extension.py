@@ -58,9 +58,9 @@ def test_extension_zip_installs_and_toggles_twice(tmp_path):
     assert not any(n.startswith(("tests/", ".venv/", ".git/")) for n in names)
     # The add-on's imports that Blender does not ship travel as wheels (make fetches them into .venv/wheels).
     bundled = {n.split("/")[1].split("-")[0] for n in names if n.startswith("wheels/")}
-    assert bundled == {"openexr", "xatlas", "pillow"}
+    assert bundled == {"openexr", "xatlas", "pillow", "onnxruntime"}
     manifest = __import__("zipfile").ZipFile(zip_path).read("blender_manifest.toml").decode()
-    assert 'platforms = ["linux-x64"]' in manifest and manifest.count("./wheels/") == 3
+    assert 'platforms = ["linux-x64"]' in manifest and manifest.count("./wheels/") == 4
     result = bpy.ops.extensions.package_install_files(filepath=str(zip_path), repo="user_default",
                                                       enable_on_install=True)
     assert result == {"FINISHED"}
@@ -78,7 +78,8 @@ def test_extension_zip_installs_and_toggles_twice(tmp_path):
 
 
 @pytest.mark.parametrize("module", ["shaders.sg_math", "shaders.octahedral", "shaders.quadrature",
-                                    "shaders.check_math", "shaders.exr_io"])
+                                    "shaders.check_math", "shaders.exr_io", "shaders.hair_raster",
+                                    "shaders.hair_pairs", "shaders.hair_filter"])
 def test_numpy_side_imports_without_torch_or_bpy(module):
     import subprocess
 
