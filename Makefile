@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed-$(shell cat requirements.txt requirements-extension.
 DEMO_OUT ?= bake_out/spheres
 HAIR_DATA ?= hair_data
 
-.PHONY: demo test test-fast bench check-math extension clean
+.PHONY: demo test test-fast bench check-math extension hair-model clean
 
 $(STAMP): requirements.txt requirements-extension.txt
 	$(PYTHON_BOOTSTRAP) -m venv $(VENV)
@@ -37,6 +37,14 @@ check-math: $(STAMP)
 bench: $(STAMP)
 	$(PY) -m pip install --quiet -r requirements-bench.txt
 	$(PY) -m headless.bench --hair-data $(HAIR_DATA)
+
+# Reproduces models/hair_base*.onnx: ~270 pairs (about 35 min on 2 cores), then Base at 4 spp (20 min) and at
+# 2 and 1 spp (8 min each). Resumable: rerun continues the dataset where it stopped.
+hair-model: $(STAMP)
+	$(PY) headless/hair_dataset.py --out $(HAIR_DATA) --pairs 240 --held-out 30 --reference-samples 192
+	$(PY) -m training.hair_train --data $(HAIR_DATA)/train --config base --budget 1200 --out models/hair_base.onnx
+	$(PY) -m training.hair_train --data $(HAIR_DATA)/train --config base@2spp --budget 480 --out models/hair_base@2spp.onnx
+	$(PY) -m training.hair_train --data $(HAIR_DATA)/train --config base@1spp --budget 480 --out models/hair_base@1spp.onnx
 
 extension: $(STAMP)
 	$(PY) -m headless.build_extension --out dist

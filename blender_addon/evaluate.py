@@ -14,6 +14,7 @@ Nothing of the scene changes: temporary cameras and material swaps are undone be
 """
 from __future__ import annotations
 
+import json
 import math
 import os
 import re
@@ -34,11 +35,11 @@ try:  # inside the installed extension the numpy side is a sibling package
     from .apply import BAKE_RECORD_KEY, baked_slots
     from ..shaders.exr_io import read_exr
     from .render import quiet_stdout, render_still
-    from .scene_analysis import active_scene
+    from .scene_analysis import active_scene, enable_nodes, principled_surface
 except ImportError:  # bpy as a module with the repository on sys.path
     from blender_addon.apply import BAKE_RECORD_KEY, baked_slots
     from blender_addon.render import quiet_stdout, render_still
-    from blender_addon.scene_analysis import active_scene
+    from blender_addon.scene_analysis import active_scene, enable_nodes, principled_surface
     from shaders.exr_io import read_exr
     from shaders.bake_plan import BakeInputError
     from shaders.bake_report import save_png, update_report
@@ -78,6 +79,64 @@ def _swap_to_originals(scene):
         undo.append((slot, slot.material))
         slot.material = original
     return undo
+
+
+# Error is reported per class of the visible surface's roughness (the bake's accuracy depends on it).
+ROUGHNESS_CLASSES = (("roughness < 0.3", 0.0, 0.3), ("0.3 <= roughness < 0.6", 0.3, 0.6),
+                     ("roughness >= 0.6", 0.6, float("inf")))
+
+
+def roughness_image(scene, camera, path) -> np.ndarray:
+    """(H, W) roughness of the original material seen through each pixel (NaN where the world shows): a quick
+    render with every slot swapped to an emission of that roughness, undone before returning."""
+    record = json.loads(scene.get(BAKE_RECORD_KEY, "{}"))
+    emissions, undo, created = {}, [], []
+    try:
+        for obj in scene.objects:
+            for index, slot in enumerate(getattr(obj, "material_slots", [])):
+                original_name = record.get(obj.name, {}).get(str(index))
+                original = bpy.data.materials.get(original_name) if original_name else slot.material
+                key = original.name if original is not None else ""
+                if key not in emissions:
+                    material = bpy.data.materials.new("SGLF roughness")
+                    created.append(material)
+                    enable_nodes(material)
+                    nodes = material.node_tree.nodes
+                    for node in list(nodes):
+                        if node.type != "OUTPUT_MATERIAL":
+                            nodes.remove(node)
+                    emission = nodes.new("ShaderNodeEmission")
+                    value = float(principled_surface(original)["roughness"]) if original is not None else 1.0
+                    emission.inputs["Color"].default_value = (value, value, value, 1.0)
+                    material.node_tree.links.new(emission.outputs[0], nodes["Material Output"].inputs["Surface"])
+                    emissions[key] = material
+                undo.append((slot, slot.material))
+                slot.material = emissions[key]
+        transparent = scene.render.film_transparent
+        scene.render.film_transparent = True
+        try:
+            scene.camera = camera
+            scene.cycles.samples = 4
+            render_still(scene, path)
+            pixels, _, _ = read_exr(path, channels=["R", "A"])
+        finally:
+            scene.render.film_transparent = transparent
+    finally:
+        for slot, material in reversed(undo):
+            slot.material = material
+        for material in created:
+            bpy.data.materials.remove(material)
+    value, alpha = pixels[..., 0].astype(np.float64), pixels[..., 1].astype(np.float64)
+    return np.where(alpha > 0.5, value / np.maximum(alpha, 1e-6), np.nan)
+
+
+def flip_by_roughness(flip_maps, roughness_maps) -> dict:
+    """Mean FLIP per roughness class over all views' pixels of that class."""
+    out = {}
+    for name, low, high in ROUGHNESS_CLASSES:
+        values = np.concatenate([f[(r >= low) & (r < high)] for f, r in zip(flip_maps, roughness_maps)])
+        out[name] = {"flip": float(values.mean()) if values.size else None, "pixels": int(values.size)}
+    return out
 
 
 def _render(scene, camera, path, samples, seed):
@@ -129,6 +188,7 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144
                  adaptive=cycles.use_adaptive_sampling, camera=scene.camera)
     cameras = _view_cameras(scene, plan, views)
     results, references, tests, eevee = [], [], [], {}
+    flip_maps, roughness_maps = [], []
     try:
         render.engine = "CYCLES"
         render.resolution_x, render.resolution_y, render.resolution_percentage = *resolution, 100
@@ -149,6 +209,8 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144
                 tests.append(ours)
                 ref_ldr, ours_ldr = tonemap(reference), tonemap(ours)
                 mean_flip, flip_map = flip(ref_ldr, ours_ldr)
+                flip_maps.append(flip_map)
+                roughness_maps.append(roughness_image(scene, camera, Path(tmp) / "roughness.exr"))
                 noise = rmse(tonemap(half_a), tonemap(half_b)) / 2
                 picture = f"evaluate_view{k}.png"
                 gap = np.ones((ref_ldr.shape[0], 2, 3))
@@ -157,7 +219,7 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144
                 results.append({"view": camera.name, "rmse": rmse(ref_ldr, ours_ldr), "psnr": psnr(ref_ldr, ours_ldr),
                                 "flip": mean_flip, "reference_noise_rmse": noise, "picture": picture})
             if with_eevee:
-                eevee = _evaluate_eevee(scene, cameras, references, tests, out_dir, Path(tmp))
+                eevee = _evaluate_eevee(scene, cameras, references, tests, out_dir, Path(tmp), roughness_maps)
     finally:
         for camera, temporary in cameras:
             if temporary:
@@ -171,6 +233,7 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144
         cycles.use_adaptive_sampling, scene.camera = saved["adaptive"], saved["camera"]
     errors = {key: float(np.mean([r[key] for r in results])) for key in ("rmse", "psnr", "flip", "reference_noise_rmse")}
     errors["views"] = results
+    errors["flip_by_roughness"] = flip_by_roughness(flip_maps, roughness_maps)
     errors["eevee"] = eevee
     errors["reference_samples"], errors["test_samples"] = reference_samples, test_samples
     seconds = time.perf_counter() - start
@@ -178,17 +241,18 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144
     return errors
 
 
-def _evaluate_eevee(scene, cameras, references, cycles_tests, out_dir: Path, work_dir: Path) -> dict:
+def _evaluate_eevee(scene, cameras, references, cycles_tests, out_dir: Path, work_dir: Path, roughness_maps) -> dict:
     """EEVEE against the reference and against Cycles' evaluation of the same baked nodes; pictures per view.
     A failure to render with EEVEE (no OpenGL on the machine) is reported, not raised."""
     try:
         images, seconds = render_eevee(scene, [camera.name for camera, _ in cameras], work_dir)
     except (RuntimeError, OSError, subprocess.TimeoutExpired) as exc:
         return {"error": str(exc)}
-    views = []
+    views, flip_maps = [], []
     for k, (image, reference, cycles) in enumerate(zip(images, references, cycles_tests)):
         ref_ldr, eevee_ldr = tonemap(reference), tonemap(image)
         mean_flip, flip_map = flip(ref_ldr, eevee_ldr)
+        flip_maps.append(flip_map)
         picture = f"evaluate_view{k}_eevee.png"
         gap = np.ones((ref_ldr.shape[0], 2, 3))
         save_png(out_dir / picture, np.concatenate([ref_ldr, gap, eevee_ldr, gap, heat(flip_map, 1.0)], axis=1),
@@ -196,6 +260,6 @@ def _evaluate_eevee(scene, cameras, references, cycles_tests, out_dir: Path, wor
         views.append({"flip": mean_flip, "psnr": psnr(ref_ldr, eevee_ldr), "rmse": rmse(ref_ldr, eevee_ldr),
                       "flip_vs_cycles_bake": flip(tonemap(cycles), eevee_ldr)[0], "picture": picture})
     summary = {key: float(np.mean([v[key] for v in views])) for key in ("flip", "psnr", "rmse", "flip_vs_cycles_bake")}
-    summary.update(views=views, samples=EEVEE_SAMPLES, first_render_s=seconds[0] if seconds else None,
+    summary.update(views=views, samples=EEVEE_SAMPLES, flip_by_roughness=flip_by_roughness(flip_maps, roughness_maps), first_render_s=seconds[0] if seconds else None,
                    later_render_s=float(np.mean(seconds[1:])) if len(seconds) > 1 else None)
     return summary

@@ -13,6 +13,8 @@ writes them to bench_out/bench.json.
             (with and without the axis-alignment regulariser) at equal training time, fixed SG12 by NNLS
             and L2 SH by least squares: loss, RMSE, held-out midpoint error, bytes per texel; loss-vs-time
             plot and table in bench_out/train_<scene>.png / bench.json.
+  apply     per SG count N = 4, 8, 16, 32: evaluator node count, apply time, EEVEE first render (shader
+            compilation included) against a compiled re-render of the baked `spheres`.
   hair      the hair filter (headless/bench_hair.py): onnxruntime time at 1024^2, PSNR/FLIP against Cycles
             of stochastic transparency, our filter and OIDN, the held-out groom apart; bench_out/hair_rows.png.
 """
@@ -29,7 +31,7 @@ if __package__ in (None, ""):
 from shaders.bake_plan import PRESETS, BakeSettings, write_json_atomic  # noqa: E402
 
 CAPTURE_TARGET_S = 10.0
-SECTIONS = ("capture", "render", "train", "hair")
+SECTIONS = ("capture", "render", "train", "apply", "hair")
 
 
 def bench_capture(scenes, presets, out_root: Path) -> list[dict]:
@@ -221,6 +223,36 @@ def bench_train(out_root: Path, scene_name: str = "spheres", budget_s: float = 6
     return {"scene": scene_name, "texels": len(texels), "rows": rows}
 
 
+def bench_apply(out_root: Path, sg_counts=(4, 8, 16, 32)) -> list[dict]:
+    """Per SG count: node count and build time of the evaluator group, EEVEE's first render of the baked
+    `spheres` (shader compilation included) and a second render of the same view (compiled), 256x144.
+    EEVEE runs on this machine's OpenGL (llvmpipe, software, without a GPU): the compile share is what
+    scales with N; absolute frame times need a GPU."""
+    from blender_addon.demo_scenes import build_demo_scene
+    from blender_addon.evaluate import render_eevee
+    from blender_addon.pipeline import BakeJob
+
+    rows = []
+    for n in sg_counts:
+        scene = build_demo_scene("spheres")
+        scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 256, 144, 100
+        settings = BakeSettings.from_preset("draft", lightfield_resolution=8, samples=8, sg_count=n,
+                                            training_budget_s=5.0)
+        out = out_root / f"apply_sg{n}"
+        job = BakeJob(scene, settings, out, stages=("capture", "render", "train", "apply"))
+        job.run()
+        report = __import__("json").loads((out / "report.json").read_text())
+        _, seconds = render_eevee(scene, [scene.camera.name] * 3, out)
+        rows.append({"sg_count": n, "nodes": report["apply"]["nodes"], "apply_s": report["timings_s"].get("apply"),
+                     "eevee_first_render_s": round(seconds[0], 2),
+                     "eevee_compiled_render_s": round(min(seconds[1:]), 2),
+                     "eevee_compile_s": round(seconds[0] - min(seconds[1:]), 2)})
+        print(f"apply N={n:>2}: {rows[-1]['nodes']} nodes, apply {rows[-1]['apply_s']} s, EEVEE first render "
+              f"{rows[-1]['eevee_first_render_s']} s, compiled {rows[-1]['eevee_compiled_render_s']} s "
+              f"-> compile ~{rows[-1]['eevee_compile_s']} s")
+    return rows
+
+
 def _plot_training(path: Path, curves: dict, rows: list, scene_name: str):
     import matplotlib
 
@@ -268,6 +300,8 @@ def main(argv=None) -> int:
         results["train"] = [bench_train(ns.out, "spheres", budget_s=30.0 if ns.quick else 120.0)]
         if not ns.quick:
             results["train"].append(bench_train(ns.out, "room", budget_s=300.0, density=8.9))
+    if "apply" in sections:
+        results["apply"] = bench_apply(ns.out, (4, 16) if ns.quick else (4, 8, 16, 32))
     if "hair" in sections:
         from headless.bench_hair import bench_hair
 

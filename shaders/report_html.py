@@ -50,6 +50,8 @@ def write_report_html(out_dir) -> Path:
     errors = report.get("errors", {})
     rows += [(f"error {key}", errors.get(key)) for key in ("rmse", "psnr", "flip", "reference_noise_rmse")
              if key in errors]
+    rows += [(f"FLIP where {name}", entry["flip"]) for name, entry in errors.get("flip_by_roughness", {}).items()
+             if entry.get("pixels")]
     eevee = errors.get("eevee") or {}
     if "error" in eevee:
         rows.append(("EEVEE", f"not rendered: {eevee['error']}"))

@@ -162,6 +162,9 @@ def test_write_back_remove_restores_everything_and_rebake_does_not_pile_up(tmp_p
     errors = evaluate_stage(scene, plan, tmp_path, views=2, resolution=(32, 18), reference_samples=8)
     assert len(errors["views"]) == 2 and all(np.isfinite(errors[k]) for k in ("rmse", "psnr", "flip"))
     assert 0 <= errors["flip"] <= 1 and (tmp_path / "evaluate_view1.png").is_file()
+    classes = errors["flip_by_roughness"]  # glossy 0.2 ball and its twin vs the rough 0.8 floor
+    assert classes["roughness < 0.3"]["pixels"] > 0 and classes["roughness >= 0.6"]["pixels"] > 0
+    assert sum(c["pixels"] for c in classes.values()) < 2 * 32 * 18  # the world's pixels belong to no class
     eevee = errors["eevee"]  # EEVEE, the engine the bake is for, renders the same views
     assert "error" not in eevee, eevee
     assert len(eevee["views"]) == 2 and (tmp_path / "evaluate_view1_eevee.png").is_file()

@@ -154,8 +154,12 @@ def main(argv=None) -> int:
                                                    "steps": result["step"],
                                                    "best_validation_loss": f"{result['best_validation']:.6g}"})
     history = result["history"]
+    first_pair = json.loads(hair_pairs.pair_paths(ns.data, hair_pairs.complete_indices(ns.data)[0])[1].read_text())
+    recipe = {"command": "python -m training.hair_train " + " ".join(sys.argv[1:] if argv is None else argv),
+              "dataset": {k: first_pair.get(k) for k in ("size", "reference_samples", "density", "samples")},
+              **{k: v for k, v in result.items() if k != "model"}}
     with atomic_output(ns.out.with_suffix(".json")) as tmp:
-        tmp.write_text(json.dumps({k: v for k, v in result.items() if k != "model"}, indent=1))
+        tmp.write_text(json.dumps(recipe, indent=1))
     print(f"hair filter {result['config']}: {result['step']} steps, {len(history)} epochs, "
           f"validation loss {result['best_validation']:.5f} -> {ns.out}")
     return 0
