@@ -20,9 +20,9 @@ from mathutils import Matrix, Vector
 
 try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.bake_plan import BakeInputError
-    from .scene_analysis import enable_nodes
+    from .scene_analysis import empty_node_material, enable_nodes
 except ImportError:  # bpy as a module with the repository on sys.path
-    from blender_addon.scene_analysis import enable_nodes
+    from blender_addon.scene_analysis import empty_node_material, enable_nodes
     from shaders.bake_plan import BakeInputError
 
 DEMO_SCENES = ("spheres", "room", "courtyard", "hair")
@@ -258,12 +258,8 @@ def build_hair(scene, style="wavy"):
     surface.hide_render = True  # only the surface the groom grows from; the head renders
     surface.parent = head
     surface.matrix_parent_inverse = head.matrix_world.inverted()
-    hair_material = bpy.data.materials.new("Hair")
-    enable_nodes(hair_material)
+    hair_material = empty_node_material("Hair")
     nodes = hair_material.node_tree.nodes
-    for node in list(nodes):
-        if node.type != "OUTPUT_MATERIAL":
-            nodes.remove(node)
     bsdf = nodes.new("ShaderNodeBsdfHairPrincipled")
     bsdf.parametrization = "COLOR"
     bsdf.inputs["Color"].default_value = (0.32, 0.17, 0.08, 1.0)  # light brown (the filter reads this colour)

@@ -35,11 +35,11 @@ try:  # inside the installed extension the numpy side is a sibling package
     from .apply import BAKE_RECORD_KEY, baked_slots
     from ..shaders.exr_io import read_exr
     from .render import quiet_stdout, render_still
-    from .scene_analysis import active_scene, enable_nodes, principled_surface
+    from .scene_analysis import active_scene, empty_node_material, principled_surface
 except ImportError:  # bpy as a module with the repository on sys.path
     from blender_addon.apply import BAKE_RECORD_KEY, baked_slots
     from blender_addon.render import quiet_stdout, render_still
-    from blender_addon.scene_analysis import active_scene, enable_nodes, principled_surface
+    from blender_addon.scene_analysis import active_scene, empty_node_material, principled_surface
     from shaders.exr_io import read_exr
     from shaders.bake_plan import BakeInputError
     from shaders.bake_report import save_png, update_report
@@ -98,13 +98,9 @@ def roughness_image(scene, camera, path) -> np.ndarray:
                 original = bpy.data.materials.get(original_name) if original_name else slot.material
                 key = original.name if original is not None else ""
                 if key not in emissions:
-                    material = bpy.data.materials.new("SGLF roughness")
+                    material = empty_node_material("SGLF roughness")
                     created.append(material)
-                    enable_nodes(material)
                     nodes = material.node_tree.nodes
-                    for node in list(nodes):
-                        if node.type != "OUTPUT_MATERIAL":
-                            nodes.remove(node)
                     emission = nodes.new("ShaderNodeEmission")
                     value = float(principled_surface(original)["roughness"]) if original is not None else 1.0
                     emission.inputs["Color"].default_value = (value, value, value, 1.0)

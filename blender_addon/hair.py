@@ -26,10 +26,10 @@ try:
     from ..shaders.exr_io import read_exr
     from ..shaders.hair_raster import HairShading, PinholeCamera, Strands
     from .render import quiet_stdout
-    from .scene_analysis import active_scene, enable_nodes
+    from .scene_analysis import active_scene, empty_node_material, enable_nodes
 except ImportError:
     from blender_addon.render import quiet_stdout
-    from blender_addon.scene_analysis import active_scene, enable_nodes
+    from blender_addon.scene_analysis import active_scene, empty_node_material, enable_nodes
     from shaders.bake_plan import BakeInputError
     from shaders.exr_io import read_exr
     from shaders.hair_raster import HairShading, PinholeCamera, Strands
@@ -140,39 +140,26 @@ def hair_color(obj) -> tuple[np.ndarray, str | None]:
 
 def _lobe_material(to_light, shading: HairShading):
     """Translucent((F_d + F_TRT, F_R, 0), N = -L), mixed with Transparent by fibre opacity."""
-    material = bpy.data.materials.new(f"{TEMP_PREFIX} lobes")
-    enable_nodes(material)
-    tree = material.node_tree
-    nodes, links = tree.nodes, tree.links
-    for node in list(nodes):
-        if node.type != "OUTPUT_MATERIAL":
-            nodes.remove(node)
+    material = empty_node_material(f"{TEMP_PREFIX} lobes")
+    nodes, links = material.node_tree.nodes, material.node_tree.links
     geometry = nodes.new("ShaderNodeNewGeometry")
 
-    def vector_math(operation, a, b=None):
-        node = nodes.new("ShaderNodeVectorMath")
+    def operation_node(kind, operation, a, b=None):
+        node = nodes.new(kind)
         node.operation = operation
         for index, source in enumerate((a, b)):
-            if source is None:
-                continue
             if isinstance(source, bpy.types.NodeSocket):
                 links.new(source, node.inputs[index])
-            else:
-                node.inputs[index].default_value = source
-        return node.outputs["Value" if operation in ("DOT_PRODUCT", "LENGTH") else "Vector"]
-
-    def math_node(operation, a, b=None):
-        node = nodes.new("ShaderNodeMath")
-        node.operation = operation
-        node.use_clamp = False
-        for index, source in enumerate((a, b)):
-            if source is None:
-                continue
-            if isinstance(source, bpy.types.NodeSocket):
-                links.new(source, node.inputs[index])
-            else:
+            elif source is not None:
                 node.inputs[index].default_value = source
         return node.outputs[0]
+
+    def vector_math(operation, a, b=None):  # output 0 is the vector, or the value of a dot product
+        node_output = operation_node("ShaderNodeVectorMath", operation, a, b)
+        return node_output.node.outputs["Value" if operation == "DOT_PRODUCT" else "Vector"]
+
+    def math_node(operation, a, b=None):
+        return operation_node("ShaderNodeMath", operation, a, b)
 
     L = tuple(float(v) for v in to_light)
     tangent = vector_math("NORMALIZE", geometry.outputs["Tangent"])

@@ -33,6 +33,16 @@ def enable_nodes(id_block) -> None:
         id_block.use_nodes = True
 
 
+def empty_node_material(name: str):
+    """A new material whose node tree holds only its Material Output (to be wired by the caller)."""
+    material = bpy.data.materials.new(name)
+    enable_nodes(material)
+    for node in list(material.node_tree.nodes):
+        if node.type != "OUTPUT_MATERIAL":
+            material.node_tree.nodes.remove(node)
+    return material
+
+
 def _surface_bsdf(material):
     if not uses_nodes(material):
         return None
