@@ -26,10 +26,10 @@ try:
     from ..shaders.exr_io import read_exr
     from ..shaders.hair_raster import HairShading, PinholeCamera, Strands
     from .render import quiet_stdout
-    from .scene_analysis import active_scene, empty_node_material, enable_nodes
+    from .scene_analysis import active_scene, empty_node_material, enable_nodes, uses_nodes
 except ImportError:
     from blender_addon.render import quiet_stdout
-    from blender_addon.scene_analysis import active_scene, empty_node_material, enable_nodes
+    from blender_addon.scene_analysis import active_scene, empty_node_material, enable_nodes, uses_nodes
     from shaders.bake_plan import BakeInputError
     from shaders.exr_io import read_exr
     from shaders.hair_raster import HairShading, PinholeCamera, Strands
@@ -127,7 +127,7 @@ def hair_color(obj) -> tuple[np.ndarray, str | None]:
     """The strand colour of the object's first material (Principled Hair 'Color' or a Base Color); default
     brown when none is readable. The second value explains a fallback."""
     material = obj.active_material or (obj.data.materials[0] if len(obj.data.materials) else None)
-    if material is None or not material.use_nodes:
+    if material is None or not uses_nodes(material):
         return np.array(DEFAULT_HAIR_COLOR), f"'{obj.name}' has no node material; default hair colour used"
     for node in material.node_tree.nodes:
         for name in ("Color", "Base Color"):

@@ -300,3 +300,28 @@ def test_dataset_generation_is_resumable(tmp_path):
     (tmp_path / "train" / "pair_00001.json").unlink()  # as if interrupted while writing pair 1
     second = run()
     assert "1 made, 2 already there" in second.stdout
+
+
+@pytest.mark.slow
+def test_two_differently_coloured_grooms_are_said_and_coloured_per_pixel(tmp_path):
+    import bpy
+
+    from blender_addon import hair
+    from blender_addon.demo_scenes import build_demo_scene
+
+    scene = build_demo_scene("demo:hair")
+    first = hair.hair_objects(scene)[0]
+    second = first.copy()  # same strands, moved aside, with its own blond material
+    second.data = first.data.copy()
+    blond = first.active_material.copy()
+    next(n for n in blond.node_tree.nodes if n.type == "BSDF_HAIR_PRINCIPLED").inputs["Color"].default_value = \
+        (0.9, 0.75, 0.4, 1.0)
+    second.data.materials[0] = blond
+    second.location.x += 0.12
+    scene.collection.objects.link(second)
+    result = hair.filter_hair(scene, tmp_path, width=64, height=48, background_samples=1)
+    assert any("2 hair objects with different colours" in w for w in result.warnings)
+    # The blond groom (right half of the frame) shows up brighter than the brown one where hair covers.
+    alpha = result.outputs[2]
+    left, right = result.image[:, :20][alpha[:, :20] > 0.5], result.image[:, 44:][alpha[:, 44:] > 0.5]
+    assert left.size and right.size and right.mean() > left.mean()
