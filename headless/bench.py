@@ -15,6 +15,9 @@ writes them to bench_out/bench.json.
             plot and table in bench_out/train_<scene>.png / bench.json.
   apply     per SG count N = 4, 8, 16, 32: evaluator node count, apply time, EEVEE first render (shader
             compilation included) against a compiled re-render of the baked `spheres`.
+  presets   each preset end to end on spheres, room and courtyard (--quick: Draft on spheres and room):
+            bake time, share per stage, FLIP overall / per roughness class / EEVEE; Pareto plot
+            bench_out/pareto.png (bake time vs FLIP). Target: Draft on room <= 5 minutes.
   hair      the hair filter (headless/bench_hair.py): onnxruntime time at 1024^2, PSNR/FLIP against Cycles
             of stochastic transparency, our filter and OIDN, the held-out groom apart; bench_out/hair_rows.png.
 """
@@ -31,7 +34,7 @@ if __package__ in (None, ""):
 from shaders.bake_plan import PRESETS, BakeSettings, write_json_atomic  # noqa: E402
 
 CAPTURE_TARGET_S = 10.0
-SECTIONS = ("capture", "render", "train", "apply", "hair")
+SECTIONS = ("capture", "render", "train", "apply", "presets", "hair")
 
 
 def bench_capture(scenes, presets, out_root: Path) -> list[dict]:
@@ -253,6 +256,59 @@ def bench_apply(out_root: Path, sg_counts=(4, 8, 16, 32)) -> list[dict]:
     return rows
 
 
+def bench_presets(out_root: Path, scenes, presets) -> list[dict]:
+    """Each preset end to end (capture .. evaluate, EEVEE included) on each scene: bake time, share of time
+    per stage, FLIP overall and per roughness class; a Pareto plot of bake time against FLIP."""
+    import json
+
+    from blender_addon.demo_scenes import build_demo_scene
+    from blender_addon.pipeline import BakeJob
+
+    rows = []
+    for name in scenes:
+        for preset in presets:
+            scene = build_demo_scene(name)
+            out = out_root / f"preset_{name}_{preset}"
+            start = time.perf_counter()
+            job = BakeJob(scene, BakeSettings.from_preset(preset), out)
+            job.run()
+            total = time.perf_counter() - start
+            errors = json.loads((out / "report.json").read_text())["errors"]
+            eevee = errors.get("eevee") or {}
+            bake_s = sum(v for k, v in job.timings.items() if k != "evaluate")
+            rows.append({"scene": name, "preset": preset, "bake_s": round(bake_s, 1), "total_s": round(total, 1),
+                         "stage_share": {k: round(v / bake_s, 3) for k, v in job.timings.items() if k != "evaluate"},
+                         "flip": round(errors["flip"], 4), "psnr_db": round(errors["psnr"], 2),
+                         "flip_by_roughness": {k: None if v["flip"] is None else round(v["flip"], 4)
+                                               for k, v in errors["flip_by_roughness"].items()},
+                         "eevee_flip": None if "flip" not in eevee else round(eevee["flip"], 4),
+                         "reference_noise_rmse": round(errors["reference_noise_rmse"], 4)})
+            row = rows[-1]
+            shares = ", ".join(f"{k} {100 * v:.0f}%" for k, v in row["stage_share"].items())
+            print(f"preset {preset:<10} {name:<10} bake {row['bake_s']:7.1f} s ({shares}); FLIP {row['flip']:.4f} "
+                  f"(EEVEE {row['eevee_flip']}), by roughness {row['flip_by_roughness']}")
+    if rows:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        figure, axes = plt.subplots(figsize=(6, 4))
+        for name in scenes:
+            mine = [r for r in rows if r["scene"] == name]
+            axes.plot([r["bake_s"] for r in mine], [r["flip"] for r in mine], "o-", label=name)
+            for r in mine:
+                axes.annotate(r["preset"], (r["bake_s"], r["flip"]), fontsize=7)
+        axes.set_xscale("log")
+        axes.set_xlabel("bake time (s, capture to apply)")
+        axes.set_ylabel("mean FLIP vs Cycles reference")
+        axes.legend()
+        figure.tight_layout()
+        figure.savefig(out_root / "pareto.png", dpi=120)
+        plt.close(figure)
+    return rows
+
+
 def _plot_training(path: Path, curves: dict, rows: list, scene_name: str):
     import matplotlib
 
@@ -302,6 +358,9 @@ def main(argv=None) -> int:
             results["train"].append(bench_train(ns.out, "room", budget_s=300.0, density=8.9))
     if "apply" in sections:
         results["apply"] = bench_apply(ns.out, (4, 16) if ns.quick else (4, 8, 16, 32))
+    if "presets" in sections:
+        results["presets"] = bench_presets(ns.out, ["spheres", "room"] if ns.quick else ["spheres", "room", "courtyard"],
+                                           ["draft"] if ns.quick else list(PRESETS))
     if "hair" in sections:
         from headless.bench_hair import bench_hair
 
