@@ -36,6 +36,7 @@ except ImportError:
 
 TEMP_PREFIX = "SGLF hair"
 DEFAULT_HAIR_COLOR = (0.35, 0.2, 0.1)
+MAX_FILTER_PIXELS = 4096 * 4096  # features, network activations and images stay within a few GB
 
 
 def hair_objects(scene) -> list:
@@ -414,6 +415,10 @@ def filter_hair(scene, out_dir, model_path=None, width: int | None = None, heigh
     with active_scene(scene):
         depsgraph = bpy.context.evaluated_depsgraph_get()
         camera = pinhole_camera(scene, depsgraph, width=width, height=height)
+        if camera.width * camera.height > MAX_FILTER_PIXELS:
+            gigabytes = camera.width * camera.height * 4 * (hair_filter.samples * 6 + 40) / 1e9
+            raise BakeInputError(f"{camera.width}x{camera.height} needs about {gigabytes:.0f} GB to filter; "
+                                 f"at most {MAX_FILTER_PIXELS // 1_000_000} megapixels (4096x4096)")
         strands = strands_from_objects(objects, depsgraph)
         low, high = strands.bounds()
         to_light, irradiance, light_name = key_light(scene, depsgraph, (low + high) / 2)

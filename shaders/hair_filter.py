@@ -44,9 +44,19 @@ class HairFilter:
         return outputs[0, :, :height, :width], bool(pad_h or pad_w)
 
     def filter(self, render: StochasticRender) -> tuple[np.ndarray, bool]:
+        """Filtered outputs of a stochastic render; alpha is zero beyond one pixel of any strand (the
+        network's small bias would otherwise veil the whole frame)."""
         if render.samples < self.samples:
             raise HairFilterError(f"the model needs {self.samples} samples per pixel; the render has {render.samples}")
-        return self.run(render.network_input(self.samples))
+        outputs, padded = self.run(render.network_input(self.samples))
+        footprint = render.extras.get("footprint")
+        if footprint is not None:
+            near = np.pad(footprint, 1)
+            near = (near[:-2, :-2] | near[:-2, 1:-1] | near[:-2, 2:] | near[1:-1, :-2] | near[1:-1, 1:-1]
+                    | near[1:-1, 2:] | near[2:, :-2] | near[2:, 1:-1] | near[2:, 2:])
+            outputs = outputs.copy()
+            outputs[2] = np.where(near, outputs[2], 0.0)
+        return outputs, padded
 
 
 def load_filter(path=None, threads: int = 0) -> HairFilter:

@@ -401,9 +401,12 @@ def render_stochastic(strands: Strands, camera: PinholeCamera, to_light, samples
         chosen = index[_nearest_per_pixel(fragments.pixel[index], fragments.depth[index])]
         features[s][:, fragments.pixel[chosen]] = per_fragment[chosen].T
         groom[s, fragments.pixel[chosen]] = fine.groom[fragments.curve[chosen]]
+    footprint = np.zeros(height * width, bool)
+    footprint[fragments.pixel] = True  # every pixel a strand crosses, before the alpha test
     return StochasticRender(features.reshape(samples, len(FEATURE_NAMES), height, width), len(fragments.pixel),
                             (near, far), {"lit_fraction": float(lit.mean()) if lit.size else 1.0,
-                                          "groom": groom.reshape(samples, height, width)})
+                                          "groom": groom.reshape(samples, height, width),
+                                          "footprint": footprint.reshape(height, width)})
 
 
 def hair_color_map(groom_samples: np.ndarray, colors: np.ndarray) -> np.ndarray:
