@@ -1,4 +1,6 @@
 """EXR helpers on real files: round trips, metadata, atomic writes, clear errors naming the file."""
+import os
+
 import numpy as np
 import pytest
 
@@ -36,6 +38,9 @@ def test_atomic_write_leaves_no_temp_files(tmp_path):
     for _ in range(3):
         write_exr(tmp_path / "x.exr", np.ones((2, 2)), precision="half")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["x.exr"]
+    mask = os.umask(0o022)
+    os.umask(mask)
+    assert (tmp_path / "x.exr").stat().st_mode & 0o777 == 0o666 & ~mask  # not private like a temp file
 
 
 def test_missing_file_names_it(tmp_path):
