@@ -74,3 +74,17 @@ def test_onnx_export_and_onnxruntime_match_torch(tmp_path):
         expected = model(features).numpy()
     got = session.run(["outputs"], {"features": features.numpy()})[0]
     np.testing.assert_allclose(got, expected, atol=1e-4, rtol=1e-4)
+
+
+def test_clamped_outputs_keep_a_small_gradient_in_training_and_exact_values():
+    """A highlight pushed below zero must still learn (else the channel dies), yet the value is max(0, x)."""
+    from training.hair_unet import LEAK, output_transform
+
+    raw = torch.tensor([[-2.0, -1.0, 2.0], [0.5, 0.3, 0.5]]).T.reshape(1, 3, 1, 2).requires_grad_(True)
+    out = output_transform(raw)
+    assert float(out[0, 1, 0, 0]) == 0.0 and float(out[0, 2, 0, 0]) == 1.0  # relu and clip values
+    out[:, 1:].sum().backward()
+    assert float(raw.grad[0, 1, 0, 0]) == pytest.approx(LEAK) and float(raw.grad[0, 1, 0, 1]) == 1.0
+    assert float(raw.grad[0, 2, 0, 0]) == pytest.approx(LEAK)
+    with torch.no_grad():
+        np.testing.assert_array_equal(output_transform(raw).numpy(), out.detach().numpy())

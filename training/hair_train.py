@@ -65,20 +65,21 @@ def random_crops(inputs, targets, batch: int, generator: torch.Generator):
     return torch.stack(x_batch), torch.stack(y_batch)
 
 
-def validation_loss(model, inputs, targets) -> float:
+def validation_loss(model, inputs, targets, gradient_weight: float = 1.0) -> float:
     if inputs is None:
         return float("nan")
     model.eval()
     total = 0.0
     with torch.no_grad():
         for i in range(len(inputs)):
-            total += float(hair_loss(model(inputs[i:i + 1].float()), targets[i:i + 1].float()))
+            total += float(hair_loss(model(inputs[i:i + 1].float()), targets[i:i + 1].float(), gradient_weight))
     model.train()
     return total / len(inputs)
 
 
 def train(data: Path, config_name: str, budget_s: float, work: Path, resume: bool = False, batch: int = 8,
-          lr: float = 1e-3, seed: int = 0, progress=lambda fraction, message: None) -> dict:
+          lr: float = 1e-3, seed: int = 0, gradient_weight: float = 1.0,
+          progress=lambda fraction, message: None) -> dict:
     config = HairNetConfig.named(config_name)
     torch.manual_seed(seed)
     train_x, train_y, val_x, val_y = load_pairs(data, config.samples)
@@ -95,6 +96,9 @@ def train(data: Path, config_name: str, budget_s: float, work: Path, resume: boo
         best_weights = saved["best"]
         state = json.loads(saved["state_json"])
         generator.manual_seed(seed + state["step"])
+        if state.get("gradient_weight", 1.0) != gradient_weight:  # another loss: old validation values don't compare
+            state["best_validation"] = float("inf")
+    state["gradient_weight"] = gradient_weight
     crops_per_image = max(1, train_x.shape[-1] // CROP) * max(1, train_x.shape[-2] // CROP)
     steps_per_epoch = max(1, len(train_x) * crops_per_image // batch)
     start = time.monotonic() - state["elapsed_s"]
@@ -106,7 +110,7 @@ def train(data: Path, config_name: str, budget_s: float, work: Path, resume: boo
             for group in optimizer.param_groups:
                 group["lr"] = lr * min([1.0] + [factor for at, factor in LR_STEPS if share >= at])
             optimizer.zero_grad()
-            loss = hair_loss(model(x), y)
+            loss = hair_loss(model(x), y, gradient_weight)
             loss.backward()
             optimizer.step()
             running += loss.item()
@@ -115,7 +119,7 @@ def train(data: Path, config_name: str, budget_s: float, work: Path, resume: boo
             progress(min(elapsed / budget_s, 1.0), f"step {state['step']} loss {loss.item():.5f}")
             if elapsed >= budget_s:
                 break
-        val = validation_loss(model, val_x, val_y)
+        val = validation_loss(model, val_x, val_y, gradient_weight)
         state["elapsed_s"] = time.monotonic() - start
         state["history"].append({"step": state["step"], "seconds": round(state["elapsed_s"], 1),
                                  "train_loss": running / steps_per_epoch, "validation_loss": val})
@@ -142,12 +146,14 @@ def main(argv=None) -> int:
     p.add_argument("--work", type=Path, default=Path("bench_out/hair_work"), help="checkpoints")
     p.add_argument("--resume", action="store_true")
     p.add_argument("--threads", type=int, default=0)
+    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--gradient-weight", type=float, default=1.0, help="weight of the image-gradient MSE term")
     ns = p.parse_args(argv)
     if ns.threads:
         torch.set_num_threads(ns.threads)
     reporter = Reporter(as_json=False)
     try:
-        result = train(ns.data, ns.config, ns.budget, ns.work, ns.resume,
+        result = train(ns.data, ns.config, ns.budget, ns.work, ns.resume, lr=ns.lr, gradient_weight=ns.gradient_weight,
                        progress=lambda f, m: reporter.progress("train", f, m))
     except (FileNotFoundError, ValueError) as error:
         reporter.end_bar()

@@ -53,11 +53,25 @@ class HairNetConfig:
         return 2 ** len(self.widths)
 
 
+LEAK = 0.01  # gradient kept where the clamps are flat, in training only
+
+
+def _leaky_gradient(clamped: torch.Tensor, raw: torch.Tensor) -> torch.Tensor:
+    """The clamped value, but a LEAK-scaled gradient where the clamp cut it: without it the sparse highlight
+    channel dies (ReLU output stuck at 0 for every pixel: measured on the first Base run)."""
+    cut = (clamped != raw).to(raw.dtype)
+    return clamped + LEAK * cut * (raw - raw.detach())
+
+
 def output_transform(raw: torch.Tensor) -> torch.Tensor:
-    """Raw network output (B, 3, H, W) -> (colour factor, highlight, alpha) in their ranges."""
+    """Raw network output (B, 3, H, W) -> (colour factor, highlight, alpha) in their ranges. The values are
+    the paper's transforms exactly; in training the clamps pass a small gradient (_leaky_gradient)."""
     x_color, x_high, x_alpha = raw[:, 0:1], raw[:, 1:2], raw[:, 2:3]
     color = x_color ** 3 / 32 + x_color / 5 + 1
-    return torch.cat([color, torch.relu(x_high), x_alpha.clamp(0.0, 1.0)], dim=1)
+    high, alpha = torch.relu(x_high), x_alpha.clamp(0.0, 1.0)
+    if torch.is_grad_enabled() and raw.requires_grad:
+        high, alpha = _leaky_gradient(high, x_high), _leaky_gradient(alpha, x_alpha)
+    return torch.cat([color, high, alpha], dim=1)
 
 
 class HairUNet(nn.Module):
