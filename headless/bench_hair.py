@@ -92,7 +92,8 @@ def _grooms():
 
             scene, objects = hair.dataset_groom(style, density)
             with active_scene(scene):
-                cache[(style, density)] = hair.strands_from_objects(objects, bpy.context.evaluated_depsgraph_get())
+                strands = hair.strands_from_objects(objects, bpy.context.evaluated_depsgraph_get())
+            cache[(style, density)] = (objects, strands)
         return cache[(style, density)]
     return get
 
@@ -107,11 +108,17 @@ def bench_quality(data: Path, models: dict, out_root: Path, max_pairs: int = 40,
                    if wanted is None or hair_pairs.split_of(i) == wanted][:max_pairs]
         scores = {}
         for n, index in enumerate(indices):
-            _, target, meta = hair_pairs.read_pair(directory, index)
+            from blender_addon.hair import render_reference
+
+            _, _, meta = hair_pairs.read_pair(directory, index)
             camera = hair_raster.PinholeCamera(np.array(meta["world_to_camera"]), meta["focal_px"],
                                                meta["size"], meta["size"])
-            strands = groom(meta["style"], meta.get("density", 60000.0))
-            render = hair_raster.render_stochastic(strands, camera, np.array(meta["light"]), 16)
+            # Blender's hair generator does not give the same strands twice (curve counts differ by ~0.5 %
+            # between builds), so the pair's view is rendered again, input and Cycles reference alike.
+            objects, strands = groom(meta["style"], meta.get("density", 60000.0))
+            light = np.array(meta["light"])
+            render = hair_raster.render_stochastic(strands, camera, light, 16)
+            target = render_reference(objects, camera, light, samples=meta["reference_samples"], seed=index)
             reference = tonemap(_composite(target))
             candidates = {"stochastic 4 spp": _composite(render.unfiltered(4)),
                           "stochastic 16 spp": _composite(render.unfiltered(16))}
