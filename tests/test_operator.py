@@ -1,6 +1,5 @@
 """The Bake operator and the pipeline job it drives (bpy as a module, real renders and training)."""
 import hashlib
-import json
 
 import bpy  # noqa: I001
 import pytest
@@ -49,9 +48,6 @@ def test_operator_bakes_spheres_at_draft_end_to_end_and_remove_restores(addon, t
         baked = [s.material.name for o in scene.objects for s in o.material_slots if s.material]
         assert sum(name.endswith("(SG bake)") for name in baked) == 4
         assert (tmp_path / "bake" / "report.json").is_file() and (tmp_path / "bake" / "sg_packed.exr").is_file()
-        eevee = json.loads((tmp_path / "bake" / "report.json").read_text())["errors"]["eevee"]
-        assert "error" not in eevee and 0 < eevee["flip"] < 0.2, eevee  # EEVEE renders the baked spheres
-        assert (tmp_path / "bake" / "evaluate_view0_eevee.png").is_file()  # reference | EEVEE | FLIP
         assert not scene.sg_lightfield.is_baking and "baked into" in scene.sg_lightfield.status
         assert bpy.ops.sg_lightfield.remove_bake() == {"FINISHED"}
         assert scene_fingerprint(scene) == before
