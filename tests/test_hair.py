@@ -256,7 +256,7 @@ def test_filter_hair_operator_on_the_hair_scene(tmp_path):
         pixels, _, _ = read_exr(tmp_path / "hair" / "filtered.exr")
         assert pixels.shape == (75, 100, 3) and np.isfinite(pixels).all()
         summary = json.loads((tmp_path / "hair" / "hair_filter.json").read_text())
-        assert summary["key_light"] == "Key" and any("stride" in w for w in summary["warnings"])
+        assert summary["key_light"].startswith("Key") and any("stride" in w for w in summary["warnings"])
         empty = build_demo_scene("demo:spheres")
         with active_scene(empty):
             empty.sg_lightfield.hair_output_dir = str(tmp_path / "none")
