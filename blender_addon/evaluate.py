@@ -261,6 +261,7 @@ def _evaluate_eevee(scene, cameras, references, cycles_tests, out_dir: Path, wor
     # Surfaces the bake leaves alone (roughness >= 0.6) are lit by EEVEE itself, which has no light from emissive
     # meshes without its ray tracing: parity with Cycles' evaluation of the same nodes is per class.
     summary.update(views=views, samples=EEVEE_SAMPLES, flip_by_roughness=flip_by_roughness(flip_maps, roughness_maps),
-                   flip_vs_cycles_bake_by_roughness=flip_by_roughness(parity_maps, roughness_maps), first_render_s=seconds[0] if seconds else None,
+                   flip_vs_cycles_bake_by_roughness=flip_by_roughness(parity_maps, roughness_maps),
+                   first_render_s=seconds[0] if seconds else None,
                    later_render_s=float(np.mean(seconds[1:])) if len(seconds) > 1 else None)
     return summary

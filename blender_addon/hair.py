@@ -26,10 +26,11 @@ try:
     from ..shaders.exr_io import read_exr
     from ..shaders.hair_raster import HairShading, PinholeCamera, Strands
     from .render import quiet_stdout
-    from .scene_analysis import active_scene, empty_node_material, enable_nodes, uses_nodes
+    from .scene_analysis import active_scene, empty_node_material, enable_nodes, remove_datablocks, uses_nodes
 except ImportError:
     from blender_addon.render import quiet_stdout
-    from blender_addon.scene_analysis import active_scene, empty_node_material, enable_nodes, uses_nodes
+    from blender_addon.scene_analysis import (active_scene, empty_node_material, enable_nodes, remove_datablocks,
+                                              uses_nodes)
     from shaders.bake_plan import BakeInputError
     from shaders.exr_io import read_exr
     from shaders.hair_raster import HairShading, PinholeCamera, Strands
@@ -279,11 +280,7 @@ def render_reference(objects, camera: PinholeCamera, to_light, samples: int = 25
             names = [f"{layer}.Combined.{c}" for c in "RGA"]
             pixels, _, _ = read_exr(path, channels=names)
     finally:
-        for collection, block in reversed(created):
-            try:
-                collection.remove(block)
-            except (ReferenceError, RuntimeError):
-                pass
+        remove_datablocks(created)
     premultiplied = np.moveaxis(pixels.astype(np.float64), -1, 0)
     alpha = np.clip(premultiplied[2], 0, 1)
     safe = np.where(alpha > 1e-4, alpha, 1.0)
@@ -377,11 +374,7 @@ def render_background(scene, camera_obj, width: int, height: int, samples: int, 
         with tempfile.TemporaryDirectory(prefix="sglf_hair_") as tmp:
             return render_still(temp, Path(tmp) / "background.exr").astype(np.float64)
     finally:
-        for collection, block in reversed(created):
-            try:
-                collection.remove(block)
-            except (ReferenceError, RuntimeError):
-                pass
+        remove_datablocks(created)
 
 
 def filter_hair(scene, out_dir, model_path=None, width: int | None = None, height: int | None = None,

@@ -43,9 +43,9 @@ try:  # inside the installed extension the numpy side is a sibling package
                                             parse_share, plan_tiles, preview_mosaic, read_preview_images,
                                             tile_is_finished, write_index)
     from ..shaders.texel_maps import channels, read_texel_maps
-    from .scene_analysis import active_scene
+    from .scene_analysis import active_scene, remove_datablocks
 except ImportError:  # bpy as a module with the repository on sys.path
-    from blender_addon.scene_analysis import active_scene
+    from blender_addon.scene_analysis import active_scene, remove_datablocks
     from shaders.bake_plan import BakeInputError, drive
     from shaders.bake_report import save_png, update_report
     from shaders.env_visibility import env_visibility
@@ -162,11 +162,7 @@ class _RenderScene:
         return self
 
     def __exit__(self, *exc):
-        for collection, block in reversed(self.created):
-            try:
-                collection.remove(block)
-            except (ReferenceError, RuntimeError):
-                pass
+        remove_datablocks(self.created)
         return False
 
     def _sanitise_environment_images(self) -> list[str]:

@@ -33,6 +33,15 @@ def enable_nodes(id_block) -> None:
         id_block.use_nodes = True
 
 
+def remove_datablocks(created) -> None:
+    """Remove (collection, datablock) pairs, last made first; ones already gone are skipped."""
+    for collection, block in reversed(created):
+        try:
+            collection.remove(block)
+        except (ReferenceError, RuntimeError):
+            pass
+
+
 def empty_node_material(name: str):
     """A new material whose node tree holds only its Material Output (to be wired by the caller)."""
     material = bpy.data.materials.new(name)

@@ -359,8 +359,8 @@ def main(argv=None) -> int:
     if "apply" in sections:
         results["apply"] = bench_apply(ns.out, (4, 16) if ns.quick else (4, 8, 16, 32))
     if "presets" in sections:
-        results["presets"] = bench_presets(ns.out, ["spheres", "room"] if ns.quick else ["spheres", "room", "courtyard"],
-                                           ["draft"] if ns.quick else list(PRESETS))
+        preset_scenes = ["spheres", "room"] if ns.quick else ["spheres", "room", "courtyard"]
+        results["presets"] = bench_presets(ns.out, preset_scenes, ["draft"] if ns.quick else list(PRESETS))
     if "hair" in sections:
         from headless.bench_hair import bench_hair
 
