@@ -25,6 +25,7 @@ try:
     from ..shaders.bake_plan import BakeInputError
     from ..shaders.exr_io import read_exr
     from ..shaders.hair_raster import HairShading, PinholeCamera, Strands
+    from ..shaders.node_group import NodeOps
     from .render import quiet_stdout
     from .scene_analysis import active_scene, empty_node_material, enable_nodes, remove_datablocks, uses_nodes
 except ImportError:
@@ -34,6 +35,7 @@ except ImportError:
     from shaders.bake_plan import BakeInputError
     from shaders.exr_io import read_exr
     from shaders.hair_raster import HairShading, PinholeCamera, Strands
+    from shaders.node_group import NodeOps
 
 TEMP_PREFIX = "SGLF hair"
 DEFAULT_HAIR_COLOR = (0.35, 0.2, 0.1)
@@ -145,38 +147,18 @@ def _lobe_material(to_light, shading: HairShading):
     material = empty_node_material(f"{TEMP_PREFIX} lobes")
     nodes, links = material.node_tree.nodes, material.node_tree.links
     geometry = nodes.new("ShaderNodeNewGeometry")
-
-    def operation_node(kind, operation, a, b=None):
-        node = nodes.new(kind)
-        node.operation = operation
-        for index, source in enumerate((a, b)):
-            if isinstance(source, bpy.types.NodeSocket):
-                links.new(source, node.inputs[index])
-            elif source is not None:
-                node.inputs[index].default_value = source
-        return node.outputs[0]
-
-    def vector_math(operation, a, b=None):  # output 0 is the vector, or the value of a dot product
-        node_output = operation_node("ShaderNodeVectorMath", operation, a, b)
-        return node_output.node.outputs["Value" if operation == "DOT_PRODUCT" else "Vector"]
-
-    def math_node(operation, a, b=None):
-        return operation_node("ShaderNodeMath", operation, a, b)
-
+    ops = NodeOps(material.node_tree)
     L = tuple(float(v) for v in to_light)
-    tangent = vector_math("NORMALIZE", geometry.outputs["Tangent"])
-    cos_tl = math_node("MINIMUM", math_node("MAXIMUM", vector_math("DOT_PRODUCT", tangent, L), -1.0), 1.0)
-    diffuse_factor = math_node("SQRT", math_node("MAXIMUM", math_node("SUBTRACT", 1.0,
-                                                                      math_node("MULTIPLY", cos_tl, cos_tl)), 0.0))
-    half = vector_math("NORMALIZE", vector_math("ADD", geometry.outputs["Incoming"], L))
-    cos_th = math_node("MINIMUM", math_node("MAXIMUM", vector_math("DOT_PRODUCT", tangent, half), -1.0), 1.0)
-    angle_th = math_node("ARCCOSINE", cos_th)
+    tangent = ops.normalize(geometry.outputs["Tangent"])
+    cos_tl = ops.clamp(ops.dot(tangent, L), -1.0, 1.0)
+    diffuse_factor = ops.sqrt(ops.maximum(ops.sub(1.0, ops.mul(cos_tl, cos_tl)), 0.0))
+    half = ops.normalize(ops.vadd(geometry.outputs["Incoming"], L))
+    angle_th = ops.acos(ops.clamp(ops.dot(tangent, half), -1.0, 1.0))
 
     def lobe(shift_deg, exponent):
-        s = math_node("MAXIMUM", math_node("SINE", math_node("ADD", angle_th, math.radians(shift_deg))), 0.0)
-        return math_node("POWER", s, exponent)
+        return ops.power(ops.maximum(ops.sin(ops.add(angle_th, math.radians(shift_deg))), 0.0), exponent)
 
-    color_factor = math_node("ADD", diffuse_factor, lobe(shading.shift_trt_deg, shading.exponent_trt))
+    color_factor = ops.add(diffuse_factor, lobe(shading.shift_trt_deg, shading.exponent_trt))
     highlight = lobe(shading.shift_r_deg, shading.exponent_r)
     rgb = nodes.new("ShaderNodeCombineColor")
     links.new(color_factor, rgb.inputs[0])

@@ -141,6 +141,12 @@ class NodeOps:
     def sqrt(self, a):
         return self._math("SQRT", a)
 
+    def sin(self, a):
+        return self._math("SINE", a)
+
+    def acos(self, a):
+        return self._math("ARCCOSINE", a)
+
     def power(self, a, exponent):
         return self._math("POWER", a, float(exponent))
 
