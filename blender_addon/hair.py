@@ -302,7 +302,7 @@ class HairFilterResult:
     warnings: list = field(default_factory=list)
 
 
-def opaque_depth(scene, depsgraph, camera: PinholeCamera, pixels: np.ndarray, exclude=()) -> np.ndarray:
+def opaque_depth(scene, depsgraph, camera: PinholeCamera, pixels: np.ndarray) -> np.ndarray:
     """(H*W,) view depth of the nearest opaque (mesh) surface at the given pixel centres, +inf elsewhere."""
     try:
         from .capture import scene_bvh
@@ -367,7 +367,7 @@ def filter_hair(scene, out_dir, model_path=None, width: int | None = None, heigh
     try:
         from ..shaders.bake_report import save_png
         from ..shaders.hair_filter import load_filter
-        from ..shaders.hair_raster import composite, covered_pixels, hair_color_map, render_stochastic
+        from ..shaders.hair_raster import composite, hair_color_map, render_stochastic
         from ..shaders.image_metrics import tonemap
         from ..shaders.atomic import atomic_output
         from ..shaders.exr_io import write_exr
@@ -376,7 +376,7 @@ def filter_hair(scene, out_dir, model_path=None, width: int | None = None, heigh
         from shaders.bake_report import save_png
         from shaders.exr_io import write_exr
         from shaders.hair_filter import load_filter
-        from shaders.hair_raster import composite, covered_pixels, hair_color_map, render_stochastic
+        from shaders.hair_raster import composite, hair_color_map, render_stochastic
         from shaders.image_metrics import tonemap
     import json
     import time
@@ -402,14 +402,10 @@ def filter_hair(scene, out_dir, model_path=None, width: int | None = None, heigh
         if len({tuple(np.round(c, 3)) for c in colors}) > 1:
             warnings.append(f"{len(objects)} hair objects with different colours: the filter knows one colour, "
                             "so each pixel takes the mean colour of the grooms its samples hit")
-        progress(0.05, "depth of the opaque scene")
-        start = time.perf_counter()
-        depth_map = opaque_depth(scene, depsgraph, camera, covered_pixels(strands, camera))  # only where hair is
-        seconds["opaque_depth"] = time.perf_counter() - start
-        progress(0.15, f"stochastic input ({hair_filter.samples} spp)")
+        progress(0.05, f"stochastic input ({hair_filter.samples} spp) and the opaque scene's depth")
         start = time.perf_counter()
         stochastic = render_stochastic(strands, camera, to_light, hair_filter.samples,
-                                       opaque_depth=depth_map.reshape(camera.height, camera.width))
+                                       opaque_depth_at=lambda pixels: opaque_depth(scene, depsgraph, camera, pixels))
         seconds["stochastic_input"] = time.perf_counter() - start
         progress(0.35, "filtering (onnxruntime)")
         start = time.perf_counter()

@@ -255,13 +255,6 @@ def rasterize_lines(strands: Strands, x, y, depth, width: int, height: int) -> F
                      length_in_pixel)
 
 
-def covered_pixels(strands: Strands, camera: PinholeCamera, subdivisions: int = 4) -> np.ndarray:
-    """Flat indices of the pixels the strands' lines cross (where an opaque-depth lookup is needed)."""
-    fine = subdivide_catmull_rom(strands, subdivisions) if subdivisions > 1 else strands
-    x, y, depth = camera.project(fine.world)
-    return np.unique(rasterize_lines(fine, x, y, depth, camera.width, camera.height).pixel)
-
-
 def strand_lobes(tangent, to_light, to_viewer, shading: HairShading):
     """(colour factor without ambient, highlight) of Paper II Fig. 3 with the half-vector specular angle."""
     cos_tl = np.clip(np.sum(tangent * to_light, axis=-1), -1, 1)
@@ -362,11 +355,12 @@ class StochasticRender:
 
 def render_stochastic(strands: Strands, camera: PinholeCamera, to_light, samples: int,
                       shading: HairShading = HairShading(), shadow_map_size: int = 1024,
-                      opaque_depth: np.ndarray | None = None, subdivisions: int = 4,
+                      opaque_depth_at=None, subdivisions: int = 4,
                       sample_offset: int = 0) -> StochasticRender:
     """Render S stochastic-transparency samples per pixel of the strands' features.
 
-    opaque_depth: optional (H, W) view depth of opaque geometry; strand fragments behind it are dropped.
+    opaque_depth_at: optional function (flat pixel indices) -> (H*W,) view depth of opaque geometry there (asked
+    only for the pixels strands cross); strand fragments behind it are dropped.
     sample_offset: first hash sample index (disjoint offsets give independent renders of the same frame).
     """
     fine = subdivide_catmull_rom(strands, subdivisions) if subdivisions > 1 else strands
@@ -374,8 +368,8 @@ def render_stochastic(strands: Strands, camera: PinholeCamera, to_light, samples
     width, height = camera.width, camera.height
     x, y, depth = camera.project(fine.world)
     fragments = rasterize_lines(fine, x, y, depth, width, height)
-    if opaque_depth is not None:
-        visible = fragments.depth < np.asarray(opaque_depth, np.float64).reshape(-1)[fragments.pixel]
+    if opaque_depth_at is not None:
+        visible = fragments.depth < np.asarray(opaque_depth_at(np.unique(fragments.pixel)), np.float64)[fragments.pixel]
         fragments = Fragments(*(getattr(fragments, name)[visible] for name in Fragments.__dataclass_fields__))
     footprint = fragments.depth / camera.focal_px
     alpha = fragments.coverage(shading.opacity, footprint)
