@@ -205,7 +205,7 @@ def test_the_shipped_model_is_a_base_filter_with_its_reproduction_recipe():
 
 @pytest.mark.slow
 def test_cycles_reference_and_our_renderer_describe_the_same_shading():
-    """Thin unoccluded strands (opacity 0.05): Cycles' colour factor and highlight match the lobes our
+    """Thin unoccluded strands (opacity 0.05): Cycles' colour factor and highlight (256 spp) match the lobes our
     renderer computes; on the demo groom (opacity 0.7, self-shadowing) the premultiplied means agree."""
     import bpy
 
@@ -223,8 +223,8 @@ def test_cycles_reference_and_our_renderer_describe_the_same_shading():
         shading = hr.HairShading(opacity=opacity)
         for light in ((0.3, -1.0, 0.4), (0.2, 1.0, 0.3)):
             light = np.array(light) / np.linalg.norm(light)
-            reference = hair.render_reference(objects, camera, light, samples=64, shading=shading)
-            ours = hr.render_stochastic(strands, camera, light, 32, shading=shading).unfiltered()
+            reference = hair.render_reference(objects, camera, light, samples=256, shading=shading)
+            ours = hr.render_stochastic(strands, camera, light, 128, shading=shading).unfiltered()
             for channel in range(2):
                 ref_mean = (reference[channel] * reference[2]).mean()
                 our_mean = (ours[channel] * ours[2]).mean()
