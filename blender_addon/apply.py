@@ -25,7 +25,7 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.bake_report import update_report
     from ..shaders.exr_io import write_exr
     from ..shaders.lightfield_tiles import read_images
-    from ..shaders.node_group import GROUP_NAME, SGTextureLayout, build_node_group
+    from ..shaders.node_group import GROUP_NAME, VERSION_KEY, SGTextureLayout, build_node_group
     from ..shaders.octahedral import pixel_directions, pixel_solid_angles
     from ..shaders.sg_math import sg_irradiance
     from ..shaders.sg_shading import encode_sharpness
@@ -40,7 +40,7 @@ except ImportError:  # bpy as a module with the repository on sys.path
     from shaders.bake_report import update_report
     from shaders.exr_io import write_exr
     from shaders.lightfield_tiles import read_images
-    from shaders.node_group import GROUP_NAME, SGTextureLayout, build_node_group
+    from shaders.node_group import GROUP_NAME, VERSION_KEY, SGTextureLayout, build_node_group
     from shaders.octahedral import pixel_directions, pixel_solid_angles
     from shaders.sg_math import sg_irradiance
     from shaders.sg_shading import encode_sharpness
@@ -185,14 +185,25 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
         raise BakeInputError(f"objects {missing} of the plan are not in scene '{scene.name}'; make a new plan")
     layout, path, measured, env_sgs = build_packed_image(out_dir, plan)
     image = _load_image(path, pack_images)
-    group = build_node_group(image, layout, env_sgs)
+    groups = {}  # SG count -> node group evaluating that many SGs of the packed image
+
+    def group_for(count: int):
+        # Textures with another SG count than the plan's (the fixed-SG baseline) are evaluated whole everywhere.
+        count = min(count, layout.sg_count) if layout.sg_count == plan.max_sg_count else layout.sg_count
+        if count not in groups:
+            fewer = SGTextureLayout(count, min(count, layout.iwev_count), layout.has_irradiance, layout.atlas_size,
+                                    tiles=layout.tiles)  # the same tiles: only the first `count` SGs are read
+            name = GROUP_NAME if count == layout.sg_count else f"{GROUP_NAME} ({count} SGs)"
+            groups[count] = build_node_group(image, fewer, env_sgs, name)
+        return groups[count]
+
     record = json.loads(scene.get(BAKE_RECORD_KEY, "{}"))
     baked_materials = set()
     for object_plan in plan.baked_objects:
         obj = scene.objects[object_plan.name]
         if OFFSET_KEY not in obj:
             raise BakeInputError(f"'{obj.name}': not captured (no lightmap tile); run the capture stage first")
-        glossy = {m.name for m in object_plan.materials if m.glossy}
+        glossy = {m.name: m.sg_count for m in object_plan.materials if m.glossy}
         slots = record.setdefault(obj.name, {})
         for index, slot in enumerate(obj.material_slots):
             current = slot.material
@@ -204,19 +215,32 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
             if not original.use_fake_user:
                 original.use_fake_user = True
                 original[FAKE_USER_KEY] = True
-            copy = _baked_material(original, group, principled_surface(original))
+            copy = _baked_material(original, group_for(glossy[original.name]), principled_surface(original))
             slot.material = copy
             slots[str(index)] = original.name
             scene[BAKE_RECORD_KEY] = json.dumps(record)  # recorded at once: an interrupted apply can be undone
             baked_materials.add(copy.name)
     scene[BAKE_RECORD_KEY] = json.dumps(record)
+    _remove_unused_groups()  # of an earlier bake with other SG counts
     seconds = time.perf_counter() - start
-    info = {"materials": sorted(baked_materials), "node_group": group.name, "nodes": len(group.nodes),
+    sg_counts = {m.name: int(group_for(m.sg_count)["sglf_sg_count"]) for o in plan.baked_objects
+                 for m in o.materials if m.glossy}
+    most = groups.get(layout.sg_count)
+    info = {"materials": sorted(baked_materials), "node_group": most.name if most else None,
+            "nodes": len(most.nodes) if most else 0,
+            "node_groups": {g.name: len(g.nodes) for g in groups.values()}, "sg_counts": sg_counts,
+            "sg_evaluations_saved": round(1 - sum(sg_counts.values()) / max(layout.sg_count * len(sg_counts), 1), 3),
             "image": image.name, "image_packed": bool(image.packed_file), "layout": layout.to_dict(), **measured}
     update_report(out_dir, plan.stage_hash("capture"), timings_s={"apply": seconds}, apply=info)
     if progress is not None:
         progress(1.0, f"{len(baked_materials)} materials baked")
     return info
+
+
+def _remove_unused_groups():
+    for group in [g for g in bpy.data.node_groups if VERSION_KEY in g and g.name.startswith(GROUP_NAME)]:
+        if group.users == 0:
+            bpy.data.node_groups.remove(group)
 
 
 def baked_slots(scene):
@@ -250,9 +274,7 @@ def remove_bake(scene) -> int:
         del scene[BAKE_RECORD_KEY]
     still_baked = any(BAKE_RECORD_KEY in s for s in bpy.data.scenes)
     if not still_baked:
-        group = bpy.data.node_groups.get(GROUP_NAME)
-        if group is not None and group.users == 0:
-            bpy.data.node_groups.remove(group)
+        _remove_unused_groups()
         image = bpy.data.images.get(IMAGE_NAME)
         if image is not None and image.users == 0:
             bpy.data.images.remove(image)

@@ -309,3 +309,38 @@ def build_demo_scene(name: str):
     else:
         _BUILDERS[base](scene)
     return scene
+
+
+STABILITY_VARIANTS = ("roughness_min", "roughness_one", "hdr_sun", "all_black", "scale_1e4", "scale_1e-3")
+
+
+def build_stability_variant(variant: str):
+    """`spheres` pushed to an extreme (DESIGN section 7): every sphere at roughness 0 (the floor ROUGHNESS_MIN
+    applies), two spheres at roughness 1, one arc emitting 1e5, no light at all, or the scene scaled by 1e4 / 1e-3.
+    Returns (scene, scale factor)."""
+    if variant not in STABILITY_VARIANTS:
+        raise BakeInputError(f"unknown stability variant {variant!r}; choose one of {', '.join(STABILITY_VARIANTS)}")
+    scene = build_demo_scene("spheres")
+
+    def bsdfs(prefix):
+        return [o.material_slots[0].material.node_tree.nodes["Principled BSDF"] for o in scene.objects
+                if o.name.startswith(prefix)]
+
+    scale = 1.0
+    if variant == "roughness_min":
+        for bsdf in bsdfs("Sphere"):
+            bsdf.inputs["Roughness"].default_value = 0.0
+    elif variant == "roughness_one":
+        for bsdf in bsdfs("Sphere")[:2]:
+            bsdf.inputs["Roughness"].default_value = 1.0
+    elif variant == "hdr_sun":
+        bsdfs("Arc")[0].inputs["Emission Strength"].default_value = 1e5
+    elif variant == "all_black":
+        for bsdf in bsdfs("Arc"):
+            bsdf.inputs["Emission Strength"].default_value = 0.0
+    else:
+        scale = float(variant.split("_")[1])
+        for obj in scene.objects:
+            if obj.parent is None:
+                obj.matrix_world = Matrix.Scale(scale, 4) @ obj.matrix_world
+    return scene, scale

@@ -126,12 +126,17 @@ def roughness_image(scene, camera, path) -> np.ndarray:
     return np.where(alpha > 0.5, value / np.maximum(alpha, 1e-6), np.nan)
 
 
-def flip_by_roughness(flip_maps, roughness_maps) -> dict:
-    """Mean FLIP per roughness class over all views' pixels of that class."""
+def flip_by_roughness(flip_maps, roughness_maps, squared_error_maps=None) -> dict:
+    """Mean FLIP (and RMSE of the tone-mapped images, given per-pixel squared errors) per roughness class over all
+    views' pixels of that class."""
     out = {}
     for name, low, high in ROUGHNESS_CLASSES:
-        values = np.concatenate([f[(r >= low) & (r < high)] for f, r in zip(flip_maps, roughness_maps)])
+        masks = [(r >= low) & (r < high) for r in roughness_maps]
+        values = np.concatenate([f[m] for f, m in zip(flip_maps, masks)])
         out[name] = {"flip": float(values.mean()) if values.size else None, "pixels": int(values.size)}
+        if squared_error_maps is not None:
+            squared = np.concatenate([e[m] for e, m in zip(squared_error_maps, masks)])
+            out[name]["rmse"] = float(np.sqrt(squared.mean())) if squared.size else None
     return out
 
 
@@ -184,7 +189,7 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144
                  adaptive=cycles.use_adaptive_sampling, camera=scene.camera)
     cameras = _view_cameras(scene, plan, views)
     results, references, tests, eevee = [], [], [], {}
-    flip_maps, roughness_maps = [], []
+    flip_maps, roughness_maps, squared_maps, noise_flip_maps = [], [], [], []
     try:
         render.engine = "CYCLES"
         render.resolution_x, render.resolution_y, render.resolution_percentage = *resolution, 100
@@ -206,8 +211,11 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144
                 ref_ldr, ours_ldr = tonemap(reference), tonemap(ours)
                 mean_flip, flip_map = flip(ref_ldr, ours_ldr)
                 flip_maps.append(flip_map)
+                squared_maps.append(((ref_ldr - ours_ldr) ** 2).mean(axis=-1))
                 roughness_maps.append(roughness_image(scene, camera, Path(tmp) / "roughness.exr"))
                 noise = rmse(tonemap(half_a), tonemap(half_b)) / 2
+                # FLIP between the two half-sample references: the floor no bake can get under at this sample count
+                noise_flip_maps.append(flip(tonemap(half_a), tonemap(half_b))[1])
                 picture = f"evaluate_view{k}.png"
                 gap = np.ones((ref_ldr.shape[0], 2, 3))
                 save_png(out_dir / picture, np.concatenate([ref_ldr, gap, ours_ldr, gap, heat(flip_map, 1.0)], axis=1),
@@ -229,7 +237,9 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144
         cycles.use_adaptive_sampling, scene.camera = saved["adaptive"], saved["camera"]
     errors = {key: float(np.mean([r[key] for r in results])) for key in ("rmse", "psnr", "flip", "reference_noise_rmse")}
     errors["views"] = results
-    errors["flip_by_roughness"] = flip_by_roughness(flip_maps, roughness_maps)
+    errors["flip_by_roughness"] = flip_by_roughness(flip_maps, roughness_maps, squared_maps)
+    errors["reference_noise_flip"] = float(np.mean([m.mean() for m in noise_flip_maps]))
+    errors["reference_noise_flip_by_roughness"] = flip_by_roughness(noise_flip_maps, roughness_maps)
     errors["eevee"] = eevee
     errors["reference_samples"], errors["test_samples"] = reference_samples, test_samples
     seconds = time.perf_counter() - start

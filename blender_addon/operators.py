@@ -31,7 +31,8 @@ def settings_from_panel(panel) -> BakeSettings:
         return BakeSettings.from_preset(panel.preset.lower(), device=device)
     return BakeSettings.from_preset("draft", texel_density=panel.texel_density,
                                     lightfield_resolution=panel.lightfield_resolution, samples=panel.samples,
-                                    sg_count=0 if panel.sg_count_auto else panel.sg_count,
+                                    sg_count=16 if panel.sg_count_auto else panel.sg_count,
+                                    uniform_sg_count=not panel.sg_count_auto,
                                     training_budget_s=panel.training_budget_s, device=device)
 
 

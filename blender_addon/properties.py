@@ -32,7 +32,8 @@ class SGLightfieldSettings(bpy.types.PropertyGroup):
     samples: IntProperty(name="Samples", description="Cycles samples per light-field pixel",
                          default=16, min=1, max=65536)
     sg_count_auto: BoolProperty(name="Automatic SG Count",
-                                description="Choose the SG count per material from its roughness", default=True)
+                                description="Give each glossy material the fewest SGs its roughness needs "
+                                "(a measured rule, at most 16)", default=True)
     sg_count: IntProperty(name="SG Count", description="Spherical Gaussians per texel", default=16, min=1, max=64)
     training_budget_s: FloatProperty(name="Training Budget", description="Seconds of training at most",
                                      default=300.0, min=1.0, subtype="TIME_ABSOLUTE", unit="TIME_ABSOLUTE")

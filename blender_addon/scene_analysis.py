@@ -94,11 +94,14 @@ def analyse_material(material, settings: BakeSettings) -> MaterialPlan:
     metallic, _ = _input_value(bsdf, "Metallic", 0.0)
     if textured:
         return MaterialPlan(name, float(roughness), float(metallic), True,
-                            settings.sg_count or 16, "roughness is textured: treated as glossy")
+                            settings.sg_count or 16, "roughness is textured: treated as glossy, the most SGs")
     glossy = roughness < GLOSSY_ROUGHNESS_MAX
-    count = (settings.sg_count or auto_sg_count(roughness)) if glossy else 0
+    most = settings.sg_count or 16
+    count = 0 if not glossy else most if settings.uniform_sg_count else auto_sg_count(roughness, most)
     reason = (f"roughness {roughness:.2f} < {GLOSSY_ROUGHNESS_MAX}: glossy, needs light-field SGs" if glossy else
               f"roughness {roughness:.2f} >= {GLOSSY_ROUGHNESS_MAX}: irradiance only (lobe wider than ~40 deg)")
+    if glossy and count < most:
+        reason += f"; {count} SGs are within the error budget at this roughness"
     return MaterialPlan(name, float(roughness), float(metallic), glossy, count, reason)
 
 

@@ -40,7 +40,10 @@ def parse_args(args: list[str]) -> argparse.Namespace:
     p.add_argument("--texel-density", type=float)
     p.add_argument("--lightfield-resolution", type=int)
     p.add_argument("--samples", type=int)
-    p.add_argument("--sg-count", type=int, help="0 = automatic per material")
+    p.add_argument("--sg-count", type=int, help="the most SGs a glossy material gets (0 = 16); each gets the "
+                   "fewest its roughness needs, up to this")
+    p.add_argument("--uniform-sg-count", action="store_true",
+                   help="give every glossy material --sg-count SGs, whatever its roughness")
     p.add_argument("--training-budget", type=float, dest="training_budget_s")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     p.add_argument("--tile", metavar="i/N", help="render only share i of N of the tiles (render farms); "
@@ -175,7 +178,8 @@ def stage_summary(stage: str, result, plan) -> tuple[str, list]:
                 f"{len(result['views'])} views (reference noise RMSE {result['reference_noise_rmse']:.4f})"
                 + eevee_text), [f"EEVEE not evaluated: {eevee['error']}"] if "error" in eevee else []
     if stage == "apply":
-        return f"{len(result['materials'])} materials baked ({result['nodes']} nodes in '{result['node_group']}')", []
+        groups = ", ".join(f"'{name}' {nodes} nodes" for name, nodes in result["node_groups"].items())
+        return f"{len(result['materials'])} materials baked (node groups: {groups})", []
     return "", []
 
 
@@ -184,7 +188,8 @@ def run(ns, reporter: Reporter) -> int:
 
     settings = BakeSettings.from_preset(
         ns.preset, texel_density=ns.texel_density, lightfield_resolution=ns.lightfield_resolution,
-        samples=ns.samples, sg_count=ns.sg_count, training_budget_s=ns.training_budget_s, device=ns.device)
+        samples=ns.samples, sg_count=ns.sg_count, uniform_sg_count=ns.uniform_sg_count,
+        training_budget_s=ns.training_budget_s, device=ns.device)
     out = ns.out.expanduser().resolve()
     if out.exists() and not out.is_dir():
         raise BakeInputError(f"{ns.out}: exists and is not a directory")

@@ -13,17 +13,26 @@ writes them to bench_out/bench.json.
             (with and without the axis-alignment regulariser) at equal training time, fixed SG12 by NNLS
             and L2 SH by least squares: loss, RMSE, held-out midpoint error, bytes per texel; loss-vs-time
             plot and table in bench_out/train_<scene>.png / bench.json.
+  knobs     every quality knob's cost and error: from Draft on spheres, one knob at a time (KNOB_SWEEP), baked and
+            evaluated: bake seconds per stage, FLIP overall and on glossy pixels. The presets come from this table.
   apply     per SG count N = 4, 8, 16, 32: evaluator node count, apply time, EEVEE first render (shader
             compilation included) against a compiled re-render of the baked `spheres`.
   presets   each preset end to end on spheres, room and courtyard (--quick: Draft on spheres and room):
             bake time, share per stage, FLIP overall / per roughness class / EEVEE; Pareto plot
             bench_out/pareto.png (bake time vs FLIP). Target: Draft on room <= 5 minutes.
+  sgcount   how many SGs a material needs, by roughness: the CNN at N = 2..16 on spheres and room, error of the
+            reflected radiance; the measured rule behind shaders/bake_plan.py SG_COUNT_BY_ROUGHNESS; sg_count.png.
+  encoders  free SGs against fixed SG12 (baked, applied, evaluated) and L2 SH at equal bytes per texel, on spheres:
+            RMSE and FLIP on glossy pixels, reflected-radiance error per roughness. Target: >= 2x lower RMSE.
+  stability the numerical-stability sweep: `spheres` at roughness 0 and 1, a 1e5 emitter, no light, scale 1e4 and
+            1e-3, each baked and evaluated: every output finite, and the errors.
   hair      the hair filter (headless/bench_hair.py): onnxruntime time at 1024^2, PSNR/FLIP against Cycles
             of stochastic transparency, our filter and OIDN, the held-out groom apart; bench_out/hair_rows.png.
 """
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from pathlib import Path
@@ -34,7 +43,7 @@ if __package__ in (None, ""):
 from shaders.bake_plan import PRESETS, BakeSettings, write_json_atomic  # noqa: E402
 
 CAPTURE_TARGET_S = 10.0
-SECTIONS = ("capture", "render", "train", "apply", "presets", "hair")
+SECTIONS = ("capture", "render", "train", "sgcount", "encoders", "knobs", "apply", "presets", "stability", "hair")
 
 
 def bench_capture(scenes, presets, out_root: Path) -> list[dict]:
@@ -152,10 +161,10 @@ def _neighbour_pairs(texels):
     return np.array(pairs, np.int64).reshape(-1, 2)
 
 
-def bench_train(out_root: Path, scene_name: str = "spheres", budget_s: float = 60.0, sg_count: int = 16,
-                density: float | None = None, midpoints: int = 128) -> dict:
+def _rendered_lightfields(out_root: Path, scene_name: str, density: float | None = None, midpoints: int = 128):
+    """Light fields of a demo scene at R = 16, 32 spp (Draft density unless given), rendered once into
+    bench_out/train_<scene> and reused: (texels, images, normals, midpoint pairs, held-out midpoints)."""
     import numpy as np
-    import torch
 
     from blender_addon.capture import capture
     from blender_addon.demo_scenes import build_demo_scene
@@ -163,13 +172,9 @@ def bench_train(out_root: Path, scene_name: str = "spheres", budget_s: float = 6
     from blender_addon.scene_analysis import build_plan
     from shaders.lightfield_tiles import read_images
     from shaders.texel_maps import channels, read_texel_maps
-    from training.baselines import (bytes_per_texel_fixed_sg, bytes_per_texel_sh_l2, eval_fixed_sg, eval_sh,
-                                    fit_fixed_sg, fit_sh_l2)
-    from training.sg_fit import (LightFieldData, TrainConfig, Trainer, error_metrics, midpoint_parameters,
-                                 pair_indices, reconstruct, unit_midpoint)
 
     scene = build_demo_scene(scene_name)
-    settings = BakeSettings.from_preset("draft", lightfield_resolution=16, samples=32, sg_count=sg_count,
+    settings = BakeSettings.from_preset("draft", lightfield_resolution=16, samples=32,
                                         **({"texel_density": density} if density else {}))
     plan = build_plan(scene, settings)
     out = out_root / f"train_{scene_name}"
@@ -179,6 +184,19 @@ def bench_train(out_root: Path, scene_name: str = "spheres", budget_s: float = 6
     texels, images = read_images(out / "lightfield", plan.stage_hash("render"))
     pairs, held_out = read_images(out / "midpoints", plan.stage_hash("render"))
     normals = channels(atlas, "Ng.X", 3)[texels[:, 0], texels[:, 1]].astype(np.float64)
+    return texels, images, normals, pairs, held_out
+
+
+def bench_train(out_root: Path, scene_name: str = "spheres", budget_s: float = 60.0, sg_count: int = 16,
+                density: float | None = None, midpoints: int = 128) -> dict:
+    import torch
+
+    from training.baselines import (bytes_per_texel_fixed_sg, bytes_per_texel_sh_l2, eval_fixed_sg, eval_sh,
+                                    fit_fixed_sg, fit_sh_l2)
+    from training.sg_fit import (LightFieldData, TrainConfig, Trainer, error_metrics, midpoint_parameters,
+                                 pair_indices, reconstruct, unit_midpoint)
+
+    texels, images, normals, pairs, held_out = _rendered_lightfields(out_root, scene_name, density, midpoints)
     a_idx, b_idx = pair_indices(texels, pairs)
     n_mid = unit_midpoint(normals[a_idx], normals[b_idx])
     rows, curves = [], {}
@@ -220,10 +238,96 @@ def bench_train(out_root: Path, scene_name: str = "spheres", budget_s: float = 6
         print(f"  {r['method']:<40} {r['seconds']:>6.1f} {r['loss']:>9.5f} {r['rmse']:>8.4f} {r['rmse_log']:>9.4f} "
               f"{r['midpoint_rmse']:>9.4f} {r['bytes_per_texel']:>6}")
     cnn, gd = rows[0], rows[1]
+    plateau_s = _time_to_within(*curves["CNN (ours)"], 0.02)
+    cnn_final = _smoothed(curves["CNN (ours)"][1])[-1]
+    gd_equal_s = _time_to_within(curves["per-texel GD"][0], curves["per-texel GD"][1], 0.0, cnn_final)
+    print(f"  CNN plateau (smoothed loss within 2 % of its final value): {plateau_s:.0f} s; per-texel GD reaches the "
+          f"CNN's final loss {cnn_final:.5f}: " + (f"at {gd_equal_s:.0f} s" if gd_equal_s is not None else "never"))
     print(f"  CNN midpoint RMSE / per-texel GD: {cnn['midpoint_rmse'] / gd['midpoint_rmse']:.2f} (target <= 0.67); "
           f"SG12 RMSE / CNN: {rows[3]['rmse'] / cnn['rmse']:.2f}, SH L2 RMSE / CNN: {rows[4]['rmse'] / cnn['rmse']:.2f} "
           "(target >= 2)")
-    return {"scene": scene_name, "texels": len(texels), "rows": rows}
+    return {"scene": scene_name, "texels": len(texels), "rows": rows, "cnn_plateau_s": plateau_s,
+            "gd_time_to_cnn_loss_s": gd_equal_s}
+
+
+def _smoothed(losses, window: int = 10):
+    import numpy as np
+
+    losses = np.asarray(losses, np.float64)
+    return np.array([losses[max(0, i - window + 1):i + 1].mean() for i in range(len(losses))])
+
+
+def _time_to_within(seconds, losses, tolerance: float, target: float | None = None):
+    """First time the smoothed loss is within `tolerance` of `target` (default: its own final value); None if never."""
+    smooth = _smoothed(losses)
+    goal = (smooth[-1] if target is None else target) * (1 + tolerance)
+    hits = [t for t, v in zip(seconds, smooth) if v <= goal]
+    return float(hits[0]) if hits else None
+
+
+def _lobe_width(roughness: float) -> float:
+    """1/sqrt(lam) of the GGX lobe in the reflection domain (the kernel of shaders/env_visibility.py), radians."""
+    from shaders.sg_math import clamp_roughness, ndf_sg
+
+    return 1.0 / math.sqrt(float(ndf_sg(None, clamp_roughness(roughness))[1]) / 4.0)
+
+
+def bench_sg_count(out_root: Path, scenes=("spheres", "room"), budget_s: float = 60.0) -> dict:
+    """How many SGs a material needs: per scene, the CNN at each candidate N (same data, same budget), and the
+    relative error of the radiance a surface of each roughness reflects (training.sg_fit.glossy_error). The
+    rule in shaders/bake_plan.py (SG_COUNT_BY_ROUGHNESS) is the smallest N whose error, worst over the scenes,
+    is within SG_COUNT_ERROR_BUDGET of the error at the largest N."""
+    import numpy as np
+    import torch
+
+    from shaders.bake_plan import SG_COUNT_CANDIDATES, SG_COUNT_ERROR_BUDGET
+    from shaders.env_visibility import above_horizon_fraction
+    from training.sg_fit import LightFieldData, TrainConfig, Trainer, glossy_error, reconstruct
+
+    roughnesses = (0.05, 0.15, 0.25, 0.35, 0.45, 0.55)
+    errors = {}  # scene -> N -> [error per roughness]
+    for scene_name in scenes:
+        _, images, normals, _, _ = _rendered_lightfields(out_root, scene_name)
+        data = LightFieldData.from_numpy(images, normals)
+        horizon = above_horizon_fraction(normals, images.shape[1]).reshape(images.shape[:3])[..., None]
+        errors[scene_name] = {}
+        for n in SG_COUNT_CANDIDATES:
+            torch.manual_seed(0)
+            trainer = Trainer(data, TrainConfig(sg_count=n, time_budget_s=budget_s, plateau_epochs=10**9))
+            trainer.train()
+            prediction = reconstruct(*trainer.parameters_numpy(), images.shape[1]) * horizon
+            errors[scene_name][n] = [glossy_error(prediction, images, normals, r) for r in roughnesses]
+            print(f"sg count {scene_name} N={n:>2}: " + ", ".join(
+                f"r {r:.2f}: {e:.4f}" for r, e in zip(roughnesses, errors[scene_name][n])), flush=True)
+    worst = {n: np.max([errors[s][n] for s in scenes], axis=0) for n in SG_COUNT_CANDIDATES}
+    ratio = {n: np.max([np.array(errors[s][n]) / np.array(errors[s][SG_COUNT_CANDIDATES[-1]]) for s in scenes], axis=0)
+             for n in SG_COUNT_CANDIDATES}  # worst over the scenes of error(N) / error(most N)
+    pixel = math.sqrt(4 * math.pi) / 16  # angular size of an R = 16 pixel
+    need = [next(n for n in SG_COUNT_CANDIDATES if ratio[n][i] <= 1 + SG_COUNT_ERROR_BUDGET)
+            if _lobe_width(r) >= pixel else "most (lobe narrower than a pixel)" for i, r in enumerate(roughnesses)]
+    print(f"\nsg count: relative error of reflected radiance (worst of {', '.join(scenes)}), {budget_s:g} s CNN each")
+    print("  N   " + " ".join(f"r={r:<6.2f}" for r in roughnesses))
+    for n in SG_COUNT_CANDIDATES:
+        print(f"  {n:<3} " + " ".join(f"{e:<8.4f}" for e in worst[n]))
+    print(f"  needed (within {100 * SG_COUNT_ERROR_BUDGET:.0f} % of N={SG_COUNT_CANDIDATES[-1]} on every scene): "
+          + ", ".join(f"r {r:.2f} -> {n}" for r, n in zip(roughnesses, need)))
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(figsize=(6, 4))
+    for i, r in enumerate(roughnesses):
+        axes.plot(SG_COUNT_CANDIDATES, [worst[n][i] for n in SG_COUNT_CANDIDATES], "o-", label=f"roughness {r:.2f}")
+    axes.set_xlabel("SGs per texel (N)")
+    axes.set_ylabel("relative RMSE of reflected radiance")
+    axes.set_yscale("log")
+    axes.legend(fontsize=7)
+    figure.tight_layout()
+    figure.savefig(out_root / "sg_count.png", dpi=120)
+    plt.close(figure)
+    return {"roughness": list(roughnesses), "errors": {s: {str(n): v for n, v in e.items()} for s, e in errors.items()},
+            "needed": dict(zip(map(str, roughnesses), need)), "budget_s": budget_s}
 
 
 def bench_apply(out_root: Path, sg_counts=(4, 8, 16, 32)) -> list[dict]:
@@ -282,11 +386,15 @@ def bench_presets(out_root: Path, scenes, presets) -> list[dict]:
                          "flip_by_roughness": {k: None if v["flip"] is None else round(v["flip"], 4)
                                                for k, v in errors["flip_by_roughness"].items()},
                          "eevee_flip": None if "flip" not in eevee else round(eevee["flip"], 4),
-                         "reference_noise_rmse": round(errors["reference_noise_rmse"], 4)})
+                         "reference_noise_rmse": round(errors["reference_noise_rmse"], 4),
+                         "reference_noise_flip_by_roughness": {
+                             k: None if v["flip"] is None else round(v["flip"], 4)
+                             for k, v in errors["reference_noise_flip_by_roughness"].items()}})
             row = rows[-1]
             shares = ", ".join(f"{k} {100 * v:.0f}%" for k, v in row["stage_share"].items())
             print(f"preset {preset:<10} {name:<10} bake {row['bake_s']:7.1f} s ({shares}); FLIP {row['flip']:.4f} "
-                  f"(EEVEE {row['eevee_flip']}), by roughness {row['flip_by_roughness']}")
+                  f"(EEVEE {row['eevee_flip']}), by roughness {row['flip_by_roughness']}, reference noise floor "
+                  f"{row['reference_noise_flip_by_roughness']}")
     if rows:
         import matplotlib
 
@@ -306,6 +414,174 @@ def bench_presets(out_root: Path, scenes, presets) -> list[dict]:
         figure.tight_layout()
         figure.savefig(out_root / "pareto.png", dpi=120)
         plt.close(figure)
+    return rows
+
+
+def bench_encoders(out_root: Path, budget_s: float = 60.0) -> list[dict]:
+    """The free SGs against the production lightmappers' encodings at equal bytes per texel, on `spheres`: CNN with
+    5 SGs (70 B) against fixed SG12 by NNLS (72 B), both baked, applied through the same node group and evaluated
+    against Cycles (RMSE and FLIP on glossy pixels); CNN with 4 SGs (56 B) against L2 SH (54 B). SH has no node
+    group, so every row also gets the numpy error of the reflected radiance per texel (glossy_error, the
+    spheres' roughnesses), where SH is measured too."""
+    import numpy as np
+
+    from blender_addon.apply import apply_stage, remove_bake
+    from blender_addon.capture import capture
+    from blender_addon.demo_scenes import build_demo_scene
+    from blender_addon.evaluate import evaluate_stage
+    from blender_addon.render import render_stage
+    from blender_addon.scene_analysis import build_plan
+    from shaders.env_visibility import above_horizon_fraction
+    from shaders.lightfield_tiles import read_images
+    from shaders.sg_textures import read_sg_texture
+    from shaders.texel_maps import channels, read_texel_maps
+    from training.baselines import bytes_per_texel_sh_l2, eval_sh, fit_sh_l2
+    from training.sg_fit import glossy_error, reconstruct
+    from training.train_stage import train_stage
+
+    roughnesses = (0.2, 0.3, 0.4, 0.5)  # the spheres'
+    rows = []
+
+    def reflected_errors(prediction, images, normals):
+        cut = prediction * above_horizon_fraction(normals, images.shape[1]).reshape(images.shape[:3])[..., None]
+        return [round(glossy_error(cut, images, normals, r), 4) for r in roughnesses]
+
+    for name, sg_count, encoder in (("free SG5 (CNN)", 5, "cnn"), ("fixed SG12 (NNLS)", 5, "fixed_sg"),
+                                    ("free SG4 (CNN)", 4, "cnn")):
+        scene = build_demo_scene("spheres")
+        plan = build_plan(scene, BakeSettings.from_preset("draft", lightfield_resolution=16, samples=32,
+                                                          sg_count=sg_count, uniform_sg_count=True,
+                                                          training_budget_s=budget_s))
+        out = out_root / f"encoders_{encoder}{sg_count}"
+        capture(scene, plan, out)
+        render_stage(scene, plan, out)
+        trained = train_stage(out, plan, encoder=encoder)
+        apply_stage(scene, plan, out)
+        errors = evaluate_stage(scene, plan, out, views=2, with_eevee=False)
+        remove_bake(scene)
+        classes = errors["flip_by_roughness"]
+        glossy = [classes[k] for k in classes if not k.startswith("roughness >=")]
+        pixels = sum(c["pixels"] for c in glossy)
+        atlas, _ = read_texel_maps(out)
+        texels, images = read_images(out / "lightfield")
+        normals = channels(atlas, "Ng.X", 3)[texels[:, 0], texels[:, 1]].astype(np.float64)
+        axis, sharpness, amplitude, _ = read_sg_texture(out / "sg_lightfield.exr")
+        r, c = texels[:, 0], texels[:, 1]
+        prediction = reconstruct(axis[r, c], sharpness[r, c], amplitude[r, c], images.shape[1])
+        rows.append({"encoder": name, "bytes_per_texel": trained.bytes_per_texel,
+                     "glossy_rmse": round(float(np.sqrt(sum(c["rmse"] ** 2 * c["pixels"] for c in glossy) / pixels)), 4),
+                     "glossy_flip": round(sum(c["flip"] * c["pixels"] for c in glossy) / pixels, 4),
+                     "flip": round(errors["flip"], 4), "reflected_error": reflected_errors(prediction, images, normals),
+                     "fit_s": round(trained.seconds, 1)})
+        if encoder == "cnn" and sg_count == 4:
+            start = time.perf_counter()
+            sh = eval_sh(fit_sh_l2(images, normals), images.shape[1])
+            rows.append({"encoder": "SH L2 (least squares)", "bytes_per_texel": bytes_per_texel_sh_l2(),
+                         "glossy_rmse": None, "glossy_flip": None, "flip": None,
+                         "reflected_error": reflected_errors(sh, images, normals),
+                         "fit_s": round(time.perf_counter() - start, 1)})
+    print(f"\nencoders at equal bytes (spheres, R = 16, 32 spp; CNN {budget_s:g} s); reflected radiance error at "
+          f"roughness {', '.join(map(str, roughnesses))}")
+    print(f"  {'encoder':<24} {'bytes':>5} {'glossy RMSE':>11} {'glossy FLIP':>11} {'FLIP':>7}  reflected error")
+    for r in rows:
+        def fmt(v, width):
+            return f"{v:>{width}.4f}" if v is not None else f"{'-':>{width}}"
+        print(f"  {r['encoder']:<24} {r['bytes_per_texel']:>5} {fmt(r['glossy_rmse'], 11)} {fmt(r['glossy_flip'], 11)} "
+              f"{fmt(r['flip'], 7)}  {r['reflected_error']}")
+    free5, sg12, free4, sh = rows
+    print(f"  glossy RMSE fixed SG12 / free SG5: {sg12['glossy_rmse'] / free5['glossy_rmse']:.2f} (target >= 2); "
+          f"reflected error SG12 / SG5: {np.mean(sg12['reflected_error']) / np.mean(free5['reflected_error']):.2f}, "
+          f"SH L2 / SG4: {np.mean(sh['reflected_error']) / np.mean(free4['reflected_error']):.2f}")
+    return rows
+
+
+KNOB_SWEEP = {"texel_density": (2.0, 8.0), "lightfield_resolution": (8, 32), "samples": (4, 64), "sg_count": (4, 16),
+              "training_budget_s": (15.0, 240.0)}
+
+
+def bench_knobs(out_root: Path, scene_name: str = "spheres", sweep=None) -> list[dict]:
+    """Every quality knob's measured cost and error: from Draft, one knob at a time to each value of KNOB_SWEEP,
+    baked end to end and evaluated against Cycles (2 views, 256x144, no EEVEE): bake seconds per stage and FLIP
+    overall and on glossy pixels. The presets in shaders/bake_plan.py are chosen from this table."""
+    import json
+
+    from blender_addon.demo_scenes import build_demo_scene
+    from blender_addon.evaluate import evaluate_stage
+    from blender_addon.pipeline import BakeJob
+
+    sweep = sweep or KNOB_SWEEP
+    runs = [("draft", None, None)] + [(f"{knob}={value:g}", knob, value) for knob, values in sweep.items()
+                                      for value in values]
+    rows = []
+    for label, knob, value in runs:
+        scene = build_demo_scene(scene_name)
+        settings = BakeSettings.from_preset("draft", **({knob: value} if knob else {}))
+        out = out_root / f"knobs_{scene_name}_{label.replace('=', '_')}"
+        job = BakeJob(scene, settings, out, stages=("capture", "render", "train", "apply"))
+        job.run()
+        errors = evaluate_stage(scene, job.plan, out, views=2, with_eevee=False)
+        classes = errors["flip_by_roughness"]
+        glossy = [classes[k] for k in classes if not k.startswith("roughness >=") and classes[k]["pixels"]]
+        pixels = sum(c["pixels"] for c in glossy)
+        report = json.loads((out / "report.json").read_text())
+        noise = [errors["reference_noise_flip_by_roughness"][k] for k in classes
+                 if not k.startswith("roughness >=") and classes[k]["pixels"]]
+        rows.append({"run": label, "bake_s": round(sum(job.timings.values()), 1),
+                     "glossy_noise_flip": round(sum(c["flip"] * c["pixels"] for c in noise) / max(pixels, 1), 4),
+                     "stages_s": {k: round(v, 1) for k, v in job.timings.items()},
+                     "flip": round(errors["flip"], 4),
+                     "glossy_flip": round(sum(c["flip"] * c["pixels"] for c in glossy) / max(pixels, 1), 4),
+                     "texels": report.get("texels"), "bytes_per_texel": report.get("bytes_per_texel"),
+                     "reference_noise_rmse": round(errors["reference_noise_rmse"], 4)})
+        r = rows[-1]
+        print(f"knob {r['run']:<24} bake {r['bake_s']:7.1f} s {r['stages_s']}  FLIP {r['flip']:.4f}  glossy FLIP "
+              f"{r['glossy_flip']:.4f} (reference noise {r['glossy_noise_flip']:.4f})  ({r['texels']} texels, "
+              f"{r['bytes_per_texel']} B/texel)", flush=True)
+    return rows
+
+
+def bench_stability(out_root: Path) -> list[dict]:
+    """The numerical-stability sweep: each extreme `spheres` variant (demo_scenes.STABILITY_VARIANTS) baked end to
+    end at small settings and evaluated against its Cycles reference. Reports whether every output (texel maps,
+    light fields, SG textures, packed image, the baked render) is finite, and the errors."""
+    import numpy as np
+
+    from blender_addon.demo_scenes import STABILITY_VARIANTS, build_stability_variant
+    from blender_addon.evaluate import evaluate_stage
+    from blender_addon.pipeline import BakeJob
+    from shaders.exr_io import read_exr
+    from shaders.lightfield_tiles import read_images
+    from shaders.sg_textures import read_sg_texture
+    from shaders.texel_maps import read_texel_maps
+
+    rows = []
+    for variant in STABILITY_VARIANTS:
+        scene, scale = build_stability_variant(variant)
+        out = out_root / f"stability_{variant}"
+        settings = BakeSettings.from_preset("draft", texel_density=4.0 / scale, lightfield_resolution=8, samples=16,
+                                            training_budget_s=20.0)
+        start = time.perf_counter()
+        job = BakeJob(scene, settings, out, stages=("capture", "render", "train", "apply"))
+        job.run()
+        bake_s = time.perf_counter() - start
+        atlas, _ = read_texel_maps(out)
+        _, images = read_images(out / "lightfield")
+        sg = read_sg_texture(out / "sg_lightfield.exr")
+        packed, _, _ = read_exr(out / "sg_packed.exr")
+        errors = evaluate_stage(scene, job.plan, out, views=1, resolution=(128, 72), reference_samples=64,
+                                with_eevee=False)
+        finite = all(np.all(np.isfinite(a)) for a in (atlas, images, *sg[:3], packed))
+        finite = finite and all(np.isfinite(errors[k]) for k in ("rmse", "flip"))
+        rows.append({"variant": variant, "finite": bool(finite), "bake_s": round(bake_s, 1),
+                     "lightfield_max": float(images.max()), "amplitude_max": float(sg[2].max()),
+                     "flip": round(errors["flip"], 4), "psnr_db": round(errors["psnr"], 2),
+                     "reference_noise_rmse": round(errors["reference_noise_rmse"], 4),
+                     "warnings": list(job.plan.warnings)})
+        r = rows[-1]
+        print(f"stability {variant:<14} finite {str(r['finite']):<5} bake {r['bake_s']:6.1f} s  light field max "
+              f"{r['lightfield_max']:10.4g}  SG amplitude max {r['amplitude_max']:10.4g}  FLIP {r['flip']:.4f}  "
+              f"PSNR {r['psnr_db']:.2f} dB", flush=True)
+    print(f"stability: every output finite in {sum(r['finite'] for r in rows)} of {len(rows)} variants")
     return rows
 
 
@@ -356,11 +632,21 @@ def main(argv=None) -> int:
         results["train"] = [bench_train(ns.out, "spheres", budget_s=30.0 if ns.quick else 120.0)]
         if not ns.quick:
             results["train"].append(bench_train(ns.out, "room", budget_s=300.0, density=8.9))
+    if "sgcount" in sections:
+        results["sgcount"] = bench_sg_count(ns.out, ("spheres",) if ns.quick else ("spheres", "room"),
+                                            budget_s=30.0 if ns.quick else 60.0)
+    if "encoders" in sections:
+        results["encoders"] = bench_encoders(ns.out, budget_s=30.0 if ns.quick else 60.0)
+    if "knobs" in sections:
+        results["knobs"] = bench_knobs(ns.out, "spheres", {"lightfield_resolution": (32,), "samples": (64,)}
+                                       if ns.quick else None)
     if "apply" in sections:
         results["apply"] = bench_apply(ns.out, (4, 16) if ns.quick else (4, 8, 16, 32))
     if "presets" in sections:
         preset_scenes = ["spheres", "room"] if ns.quick else ["spheres", "room", "courtyard"]
         results["presets"] = bench_presets(ns.out, preset_scenes, ["draft"] if ns.quick else list(PRESETS))
+    if "stability" in sections:
+        results["stability"] = bench_stability(ns.out)
     if "hair" in sections:
         from headless.bench_hair import bench_hair
 

@@ -21,12 +21,18 @@ PLAN_VERSION = 1
 # well below what irradiance alone misses, so rougher materials get diffuse irradiance only.
 GLOSSY_ROUGHNESS_MAX = 0.6
 
-# Provisional defaults; the evaluate issue replaces them with measured values.
+# Chosen from `python -m headless.bench --sections knobs` (spheres, one knob at a time from the old Draft, glossy
+# FLIP against a 128 spp Cycles reference whose own noise floor there is 0.051): SGs at most 8 -> 16 was the best
+# trade (glossy FLIP 0.120 -> 0.103 for +7 s: the per-material rule keeps rough materials at 8), 64 spp the next
+# (0.112, +9 s), texel density 8 a small gain (0.114); R = 32 gained 0.002 for 4x the light-field pixels (R = 8 lost
+# 0.014), and 15 s of training matched 60 s on 16 spp data (0.113 vs 0.120: longer fits the noise). Production keeps
+# R = 32 and density 16 for scenes with finer lighting than spheres; on this 2-core CPU it is a long job (spheres:
+# render ~40 min), on a GPU or a farm (--tile i/N) minutes.
 PRESETS = {
-    "draft": dict(texel_density=4.0, lightfield_resolution=16, samples=16, sg_count=8, training_budget_s=60.0),
-    "preview": dict(texel_density=8.0, lightfield_resolution=32, samples=64, sg_count=12, training_budget_s=300.0),
-    "production": dict(texel_density=16.0, lightfield_resolution=64, samples=256, sg_count=16,
-                       training_budget_s=1800.0),
+    "draft": dict(texel_density=4.0, lightfield_resolution=16, samples=16, sg_count=16, training_budget_s=30.0),
+    "preview": dict(texel_density=8.0, lightfield_resolution=16, samples=64, sg_count=16, training_budget_s=120.0),
+    "production": dict(texel_density=16.0, lightfield_resolution=32, samples=256, sg_count=16,
+                       training_budget_s=600.0),
 }
 
 # Camera paths per second of the atlas render on this machine class (2 cores), measured by `make bench` on
@@ -39,7 +45,8 @@ CYCLES_BYTES_PER_PIXEL = 64  # render buffers of one tile (combined pass, sample
 STAGE_SETTINGS = {
     "capture": {"texel_density"},
     "render": {"texel_density", "lightfield_resolution", "samples"},
-    "train": {"texel_density", "lightfield_resolution", "samples", "sg_count", "training_budget_s"},
+    "train": {"texel_density", "lightfield_resolution", "samples", "sg_count", "uniform_sg_count",
+              "training_budget_s"},
 }
 STAGE_SETTINGS["apply"] = STAGE_SETTINGS["evaluate"] = STAGE_SETTINGS["train"]
 
@@ -58,7 +65,8 @@ class BakeSettings:
     texel_density: float = 4.0  # texels per metre
     lightfield_resolution: int = 16  # octahedral R
     samples: int = 16
-    sg_count: int = 8  # 0 = automatic per material
+    sg_count: int = 8  # the most SGs a glossy material gets (0 = 16); each gets what its roughness needs, up to it
+    uniform_sg_count: bool = False  # every glossy material gets sg_count SGs, whatever its roughness
     training_budget_s: float = 60.0
     device: str = "cpu"
 
@@ -78,7 +86,7 @@ class BakeSettings:
             (8 <= self.lightfield_resolution <= 128,
              f"light-field resolution {self.lightfield_resolution} is outside 8..128"),
             (1 <= self.samples <= 65536, f"samples {self.samples} is outside 1..65536"),
-            (0 <= self.sg_count <= 64, f"SG count {self.sg_count} is outside 0 (auto)..64"),
+            (0 <= self.sg_count <= 64, f"SG count {self.sg_count} is outside 0 (= 16)..64"),
             (1 <= self.training_budget_s <= 7 * 24 * 3600, f"training budget {self.training_budget_s} s is outside 1 s..7 days"),
             (self.device in ("cpu", "cuda"), f"device {self.device!r} is not 'cpu' or 'cuda'"),
         ]
@@ -152,6 +160,13 @@ class BakePlan:
         """What the bake models and why, one line each: what the CLI prints, the panel and the report show."""
         lines = [f"{o.name}: {'bake' if o.bake_lightfield else 'skip'} ({o.reason}; {o.texels} texels)"
                  for o in self.objects]
+        glossy = {m.name: m.sg_count for o in self.baked_objects for m in o.materials if m.glossy}
+        if glossy:
+            rule = ("every glossy material the same (uniform)" if self.settings.uniform_sg_count else
+                    f"the fewest within {100 * SG_COUNT_ERROR_BUDGET:.0f} % of 16 SGs at its roughness (measured), at most "
+                    f"{self.settings.sg_count or 16}")
+            lines.append("SGs per material: " + ", ".join(f"{k} {v}" for k, v in sorted(glossy.items()))
+                         + f" ({rule})")
         lines.append(f"environment: {self.environment.reason}")
         if self.lamps or self.emissive_objects:
             lines.append(f"light sources: lamps {self.lamps or 'none'}, "
@@ -243,10 +258,18 @@ def write_json_atomic(path, data) -> Path:
     return Path(path)
 
 
-def auto_sg_count(roughness: float) -> int:
-    """Provisional rule: smoother materials need more lobes (replaced by a measured rule in training)."""
-    if roughness <= 0.25:
-        return 16
-    if roughness <= 0.45:
-        return 12
-    return 8
+# The per-material SG count rule, measured by `python -m headless.bench --sections sgcount` (CNN at N = 2..16, R = 16,
+# 60 s each, on spheres and room): N is the fewest SGs whose error in reflected radiance (training.sg_fit.glossy_error)
+# stays within SG_COUNT_ERROR_BUDGET of the error with 16 on every scene. Below roughness 0.4 the GGX lobe is
+# narrower than one R = 16 pixel, the measurement sees the light field's own noise rather than the fit, and such
+# materials get the most SGs the settings allow.
+SG_COUNT_CANDIDATES = (2, 4, 8, 12, 16)
+SG_COUNT_ERROR_BUDGET = 0.15
+SG_COUNT_BY_ROUGHNESS = ((0.4, None), (1.0, 8))  # (roughness below, SGs needed; None = the most allowed)
+
+
+def auto_sg_count(roughness: float, most: int = 16) -> int:
+    """SGs a glossy material of this roughness needs (the measured rule above), at most `most`."""
+    most = most or 16
+    need = next(n for bound, n in SG_COUNT_BY_ROUGHNESS if roughness < bound or bound >= 1.0)
+    return most if need is None else min(need, most)

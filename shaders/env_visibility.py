@@ -60,6 +60,14 @@ def _apply_kernel(kernel, images):
     return (kernel @ flat).reshape(p, t, c).transpose(1, 0, 2)
 
 
+def glossy_prefilter(images: np.ndarray, resolution: int, roughness: float) -> np.ndarray:
+    """(T, P, C) radiance (T, P, C) averaged over the GGX lobe of `roughness` about each reflection direction
+    (the kernel above, normalised): what a glossy surface of that roughness reflects, before Fresnel and shadowing."""
+    kernel = reflection_kernel(resolution, roughness)
+    kernel /= kernel.sum(axis=1, keepdims=True)
+    return _apply_kernel(kernel, np.asarray(images, np.float64).reshape(len(images), resolution * resolution, -1))
+
+
 def env_visibility(occluded: np.ndarray, unoccluded: np.ndarray, normals: np.ndarray, roughness: np.ndarray,
                    resolution: int) -> np.ndarray:
     """W_E (T, P, C) from occluded (T, P, C) = L_E V per texel and unoccluded (P, C) = L_E."""

@@ -46,12 +46,19 @@ def write_report_html(out_dir) -> Path:
     rows = [("texels", report.get("texels")), ("coverage %", report.get("coverage_percent")),
             ("pushed-out texels", report.get("pushed_out_texels")), ("buried texels", report.get("buried_texels")),
             ("SGs per texel", report.get("sg_count")), ("bytes per texel", report.get("bytes_per_texel"))]
+    apply = report.get("apply", {})
+    if apply.get("node_groups"):
+        rows.append(("node groups (nodes)", ", ".join(f"{k}: {v}" for k, v in apply["node_groups"].items())))
+        rows.append(("SG evaluations saved by per-material counts", apply.get("sg_evaluations_saved")))
     rows += [(f"{stage} seconds", seconds) for stage, seconds in timings.items()]
     errors = report.get("errors", {})
-    rows += [(f"error {key}", errors.get(key)) for key in ("rmse", "psnr", "flip", "reference_noise_rmse")
+    rows += [(f"error {key}", errors.get(key)) for key in ("rmse", "psnr", "flip", "reference_noise_rmse",
+                                                            "reference_noise_flip")
              if key in errors]
     rows += [(f"FLIP where {name}", entry["flip"]) for name, entry in errors.get("flip_by_roughness", {}).items()
              if entry.get("pixels")]
+    rows += [(f"FLIP of the reference's own noise where {name} (the floor)", entry["flip"])
+             for name, entry in errors.get("reference_noise_flip_by_roughness", {}).items() if entry.get("pixels")]
     eevee = errors.get("eevee") or {}
     if "error" in eevee:
         rows.append(("EEVEE", f"not rendered: {eevee['error']}"))

@@ -250,3 +250,65 @@ def test_eevee_renders_the_baked_spheres_in_the_evaluate_stage(tmp_path):
     for name in ("roughness < 0.3", "0.3 <= roughness < 0.6"):
         assert parity[name]["pixels"] > 100 and parity[name]["flip"] < 0.1, parity
     remove_bake(scene)
+
+
+def test_each_material_gets_the_sg_count_its_roughness_needs(tmp_path):
+    """A smooth and a rougher glossy material: the rougher one is fitted and shaded with fewer SGs (its texels'
+    extra SGs are zero, its node group is smaller); --uniform-sg-count gives both the same."""
+    from shaders.bake_plan import auto_sg_count
+    from shaders.sg_textures import read_sg_texture
+    from shaders.texel_maps import channels, read_texel_maps
+    from training.train_stage import train_stage
+
+    smooth, rougher = material("Smooth", 0.1, metallic=1.0), material("Rougher", 0.5, metallic=1.0)
+    ball = mesh_object("Smooth ball", uv_sphere(0.6, 16, 8), smooth)
+    other = mesh_object("Rougher ball", uv_sphere(0.6, 16, 8), rougher)
+    other.location = (1.5, 0, 0)
+    lamp = bpy.data.objects.new("Lamp", bpy.data.lights.new("Lamp", "POINT"))
+    lamp.location = (0, -2, 2)
+    scene = scene_with(ball, other, lamp)
+    settings = BakeSettings.from_preset("draft", texel_density=6.0, lightfield_resolution=8, samples=4, sg_count=16,
+                                        training_budget_s=2.0)
+    plan = build_plan(scene, settings)
+    counts = {m.name: m.sg_count for o in plan.baked_objects for m in o.materials}
+    assert counts == {"Smooth": auto_sg_count(0.1), "Rougher": auto_sg_count(0.5)} and counts["Rougher"] < 16
+    uniform = build_plan(scene, BakeSettings.from_preset("draft", sg_count=16, uniform_sg_count=True))
+    assert {m.sg_count for o in uniform.baked_objects for m in o.materials} == {16}
+    assert uniform.stage_hash("train") != plan.stage_hash("train")
+
+    capture(scene, plan, tmp_path)
+    render_stage(scene, plan, tmp_path)
+    train_stage(tmp_path, plan)
+    atlas, info = read_texel_maps(tmp_path)
+    _, _, amplitude, meta = read_sg_texture(tmp_path / "sg_lightfield.exr")
+    assert int(meta["sg_count"]) == counts["Smooth"]
+    rougher_id = next(m["id"] for m in info["materials"] if m["name"] == "Rougher")
+    valid = channels(atlas, "valid") > 0
+    on_rougher = valid & (channels(atlas, "material_id") == rougher_id)
+    on_smooth = valid & ~on_rougher
+    assert on_rougher.sum() > 10 and on_smooth.sum() > 10
+    assert np.all(amplitude[on_rougher][:, counts["Rougher"]:] == 0)
+    assert np.any(amplitude[on_rougher][:, :counts["Rougher"]] > 0)
+    assert np.any(amplitude[on_smooth][:, counts["Rougher"]:] > 0)
+
+    result = apply_stage(scene, plan, tmp_path)
+    smooth_group = ball.material_slots[0].material.node_tree.nodes["Group"].node_tree
+    rougher_group = other.material_slots[0].material.node_tree.nodes["Group"].node_tree
+    assert smooth_group.name == GROUP_NAME and rougher_group.name == f"{GROUP_NAME} ({counts['Rougher']} SGs)"
+    assert len(rougher_group.nodes) < len(smooth_group.nodes)
+    assert result["sg_counts"] == counts and result["node_groups"] == {
+        smooth_group.name: len(smooth_group.nodes), rougher_group.name: len(rougher_group.nodes)}
+    assert result["sg_evaluations_saved"] == pytest.approx(1 - sum(counts.values()) / (2 * counts["Smooth"]), abs=1e-3)
+    with active_scene(scene), quiet_stdout():  # both groups shade to finite colours
+        scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 32, 18, 100
+        scene.cycles.samples = 2
+        scene.render.image_settings.file_format = "OPEN_EXR"
+        scene.render.filepath = str(tmp_path / "baked.exr")
+        scene.camera = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
+        scene.collection.objects.link(scene.camera)
+        scene.camera.location, scene.camera.rotation_euler = (0.75, -5, 0), (1.5708, 0, 0)
+        bpy.ops.render.render(write_still=True, scene=scene.name)
+    rendered, _, _ = read_exr(tmp_path / "baked.exr", channels=["R", "G", "B"])
+    assert np.all(np.isfinite(rendered)) and rendered.max() > 0
+    assert remove_bake(scene) == 2
+    assert not any(g.name.startswith(GROUP_NAME) for g in bpy.data.node_groups)

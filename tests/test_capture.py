@@ -272,7 +272,7 @@ def test_cli_capture_writes_report_and_pictures(tmp_path):
     progress = [e["fraction"] for e in events if e["event"] == "progress"]
     assert progress == sorted(progress) and progress[-1] == 1.0
     report = json.loads((tmp_path / "report.json").read_text())
-    assert report["texels"] > 0 and report["timings_s"]["capture"] > 0 and report["sg_count"] == 8
+    assert report["texels"] > 0 and report["timings_s"]["capture"] > 0 and report["sg_count"] == 16
     assert all((tmp_path / name).is_file() for name in CAPTURE_PICTURES)
 
 

@@ -2,10 +2,9 @@
 import bpy  # noqa: I001
 import numpy as np
 import pytest
-from mathutils import Matrix
 
 from blender_addon.apply import remove_bake
-from blender_addon.demo_scenes import build_demo_scene
+from blender_addon.demo_scenes import STABILITY_VARIANTS, build_stability_variant
 from blender_addon.pipeline import BakeJob
 from blender_addon.render import quiet_stdout
 from blender_addon.scene_analysis import active_scene
@@ -18,38 +17,9 @@ from shaders.texel_maps import read_texel_maps
 pytestmark = pytest.mark.slow
 
 
-def _bsdfs(scene, prefix):
-    for obj in scene.objects:
-        if obj.name.startswith(prefix):
-            yield obj.material_slots[0].material.node_tree.nodes["Principled BSDF"]
-
-
-def _variant(name):
-    scene = build_demo_scene("demo:spheres")
-    if name == "roughness_min":
-        for bsdf in _bsdfs(scene, "Sphere"):
-            bsdf.inputs["Roughness"].default_value = 0.0  # floored to ROUGHNESS_MIN
-    elif name == "roughness_one":
-        for bsdf in list(_bsdfs(scene, "Sphere"))[:2]:
-            bsdf.inputs["Roughness"].default_value = 1.0
-    elif name == "hdr_sun":
-        next(_bsdfs(scene, "Arc")).inputs["Emission Strength"].default_value = 1e5
-    elif name == "all_black":
-        for bsdf in _bsdfs(scene, "Arc"):
-            bsdf.inputs["Emission Strength"].default_value = 0.0
-    elif name.startswith("scale_"):
-        factor = float(name.split("_")[1])
-        for obj in scene.objects:
-            if obj.parent is None:
-                obj.matrix_world = Matrix.Scale(factor, 4) @ obj.matrix_world
-    return scene
-
-
-@pytest.mark.parametrize("variant", ["roughness_min", "roughness_one", "hdr_sun", "all_black", "scale_1e4",
-                                     "scale_1e-3"])
+@pytest.mark.parametrize("variant", STABILITY_VARIANTS)
 def test_bake_stays_finite_at_the_extremes(tmp_path, variant):
-    scene = _variant(variant)
-    scale = float(variant.split("_")[1]) if variant.startswith("scale_") else 1.0
+    scene, scale = build_stability_variant(variant)
     settings = BakeSettings.from_preset("draft", texel_density=4.0 / scale, lightfield_resolution=8, samples=4,
                                         sg_count=4, training_budget_s=2.0)
     job = BakeJob(scene, settings, tmp_path, stages=("capture", "render", "train", "apply"))

@@ -42,7 +42,10 @@ class TrainConfig:
     learning_rate: float = 1e-3
     seed: int = 0
     device: str = "cpu"
-    plateau_epochs: int = 40  # stop when the best loss has not improved by plateau_rel for this many epochs
+    # Stop when the mean loss of the last window has not improved on the window before by plateau_rel; the window is
+    # plateau_epochs, or more epochs when needed to hold plateau_steps optimiser steps (small bakes: short epochs).
+    plateau_epochs: int = 40
+    plateau_steps: int = 2000
     plateau_rel: float = 1e-3
     below_horizon_weight: float = 0.0  # 0 = the paper's loss
     checkpoint_every_s: float = 30.0
@@ -64,6 +67,7 @@ class LightFieldData:
 
     images: torch.Tensor
     normals: torch.Tensor
+    lobe_counts: torch.Tensor | None = None  # (T,) SGs each texel may use (its material's N); None = all
 
     @property
     def resolution(self) -> int:
@@ -74,10 +78,11 @@ class LightFieldData:
         return int(self.images.shape[-1])
 
     @classmethod
-    def from_numpy(cls, images, normals, device="cpu"):
+    def from_numpy(cls, images, normals, device="cpu", lobe_counts=None):
         images = np.maximum(np.nan_to_num(np.asarray(images, np.float32), nan=0.0, posinf=0.0, neginf=0.0), 0.0)
         normals = np.asarray(normals, np.float32).reshape(-1, 3)
-        return cls(torch.from_numpy(images).to(device), torch.from_numpy(normals).to(device))
+        counts = None if lobe_counts is None else torch.from_numpy(np.asarray(lobe_counts, np.int64)).to(device)
+        return cls(torch.from_numpy(images).to(device), torch.from_numpy(normals).to(device), counts)
 
 
 def amplitude_scale_for(images: torch.Tensor) -> float:
@@ -98,15 +103,30 @@ def constrain(raw: torch.Tensor, amplitude_scale: float):
     return axis, sharpness, amplitude
 
 
-def initial_raw(sg_count: int, channels: int = 3) -> torch.Tensor:
+def initial_amplitude_fraction(data: "LightFieldData", amplitude_scale: float) -> float:
+    """The data's mean radiance over the texels' upper hemispheres as a fraction of the amplitude scale (its 99th
+    percentile), at most INITIAL_AMPLITUDE_MAX. Lobes that tile the sphere at this amplitude predict the mean: a
+    neutral start. A fixed 0.3 overshot sparse light fields (thin emitters, R = 32 spheres: mean = 0.025 x the
+    scale) 12-fold, and the CNN escaped the overshoot by making every lobe maximally sharp and dark, never to recover
+    (the baked spheres rendered black)."""
+    whole_sphere = (data.normals.abs().sum(-1) == 0).float()
+    share_above = float((0.5 + 0.5 * whole_sphere).mean())  # pixels a texel's horizon keeps, roughly
+    mean = float(data.images.float().mean()) / max(share_above, 1e-3)
+    return float(min(max(mean / max(amplitude_scale, 1e-12), INITIAL_AMPLITUDE_MIN), INITIAL_AMPLITUDE_MAX))
+
+
+INITIAL_AMPLITUDE_MIN, INITIAL_AMPLITUDE_MAX = 1e-4, 0.3
+
+
+def initial_raw(sg_count: int, channels: int = 3, amplitude_fraction: float = INITIAL_AMPLITUDE_MAX) -> torch.Tensor:
     """Raw parameters (N, 4 + C) both optimisers start from: axes on a Fibonacci sphere, sharpness N/2 (lobes that
-    tile the sphere), amplitudes 0.3 x the data scale."""
+    tile the sphere), amplitudes `amplitude_fraction` x the data scale."""
     from shaders.quadrature import fibonacci_sphere
 
     axes = torch.tensor(fibonacci_sphere(sg_count)[0], dtype=torch.float32)
     fraction = (math.log(max(sg_count / 2.0, 1.0)) - LOG_SHARPNESS_MIN) / (LOG_SHARPNESS_MAX - LOG_SHARPNESS_MIN)
     sharpness = math.log(fraction / (1 - fraction)) + 1.0
-    amplitude = math.log(math.expm1(0.3))
+    amplitude = math.log(math.expm1(amplitude_fraction))
     raw = torch.empty((sg_count, params_per_sg(channels)))
     raw[:, 0:3], raw[:, 3], raw[:, 4:] = axes, sharpness, amplitude
     return raw
@@ -147,7 +167,8 @@ class SGEncoder(nn.Module):
     """Paper I encoder: [conv 3x3 + ReLU + max-pool 2x2] blocks (32 channels, doubling) down to 4x4 (at most
     four blocks), then one fully connected layer to N x (4 + C) parameters."""
 
-    def __init__(self, resolution: int, sg_count: int, in_channels: int = 3):
+    def __init__(self, resolution: int, sg_count: int, in_channels: int = 3,
+                 amplitude_fraction: float = INITIAL_AMPLITUDE_MAX):
         super().__init__()
         if resolution < 8 or resolution & (resolution - 1):
             raise ValueError(f"light-field resolution {resolution} must be a power of two >= 8")
@@ -161,7 +182,7 @@ class SGEncoder(nn.Module):
         self.head = nn.Linear(channels * size * size, sg_count * self.per_sg)
         with torch.no_grad():  # start every texel at the shared initial read-out, small input dependence
             self.head.weight.mul_(0.1)
-            self.head.bias.copy_(initial_raw(sg_count, in_channels).flatten())
+            self.head.bias.copy_(initial_raw(sg_count, in_channels, amplitude_fraction).flatten())
         self.sg_count = sg_count
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
@@ -174,10 +195,11 @@ class SGEncoder(nn.Module):
 class PerTexelParameters(nn.Module):
     """The per-texel gradient-descent baseline: raw parameters for every texel, same read-out."""
 
-    def __init__(self, texels: int, sg_count: int, generator: torch.Generator, channels: int = 3):
+    def __init__(self, texels: int, sg_count: int, generator: torch.Generator, channels: int = 3,
+                 amplitude_fraction: float = INITIAL_AMPLITUDE_MAX):
         super().__init__()
         noise = torch.randn((texels, sg_count, params_per_sg(channels)), generator=generator) * 0.05
-        self.raw = nn.Parameter(initial_raw(sg_count, channels)[None] + noise)
+        self.raw = nn.Parameter(initial_raw(sg_count, channels, amplitude_fraction)[None] + noise)
 
     def forward(self, index: torch.Tensor) -> torch.Tensor:
         return self.raw[index]
@@ -203,11 +225,12 @@ class Trainer:
         torch.manual_seed(config.seed)
         self.generator = torch.Generator(device="cpu").manual_seed(config.seed)
         self.amplitude_scale = amplitude_scale_for(data.images)
+        fraction = initial_amplitude_fraction(data, self.amplitude_scale)
         if mode == "cnn":
-            self.model = SGEncoder(data.resolution, config.sg_count, data.channels).to(self.device)
+            self.model = SGEncoder(data.resolution, config.sg_count, data.channels, fraction).to(self.device)
         else:
             self.model = PerTexelParameters(len(data.images), config.sg_count, self.generator,
-                                            data.channels).to(self.device)
+                                            data.channels, fraction).to(self.device)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.learning_rate)
         self.solid_angles = pixel_solid_angles(data.resolution, device=self.device)
         self.neighbours = neighbours  # (M, 2) texel index pairs for the axis-alignment regulariser
@@ -222,6 +245,15 @@ class Trainer:
             return self.model(self.data.images[index].to(self.device))
         return self.model(index.to(self.device))
 
+    def constrained_parameters(self, index: torch.Tensor):
+        """axis, sharpness, amplitude of the texels `index`; SGs beyond a texel's lobe count have zero amplitude."""
+        axis, sharpness, amplitude = constrain(self.raw_parameters(index), self.amplitude_scale)
+        if self.data.lobe_counts is not None:
+            slots = torch.arange(amplitude.shape[1], device=amplitude.device)
+            used = slots[None, :] < self.data.lobe_counts[index].to(amplitude.device)[:, None]
+            amplitude = amplitude * used[..., None]
+        return axis, sharpness, amplitude
+
     @torch.no_grad()
     def parameters_numpy(self, batch: int = 1024):
         """Constrained parameters of every texel as numpy: axis (T,N,3), sharpness (T,N), amplitude (T,N,C).
@@ -229,7 +261,7 @@ class Trainer:
         axes, sharpness, amplitude = [], [], []
         for start in range(0, len(self.data.images), batch):
             index = torch.arange(start, min(start + batch, len(self.data.images)))
-            a, s, m = constrain(self.raw_parameters(index), self.amplitude_scale)
+            a, s, m = self.constrained_parameters(index)
             black = self.data.images[index].flatten(1).amax(dim=1) <= 0
             m = torch.where(black[:, None, None].to(m.device), torch.zeros_like(m), m)
             axes.append(a.cpu().numpy()), sharpness.append(s.cpu().numpy()), amplitude.append(m.cpu().numpy())
@@ -240,7 +272,7 @@ class Trainer:
         target = self.data.images[index].to(self.device)
         normals = self.data.normals[index].to(self.device)
         directions = jittered_directions(len(index), self.data.resolution, self.generator).to(self.device)
-        params = constrain(self.raw_parameters(index), self.amplitude_scale)
+        params = self.constrained_parameters(index)
         loss, _ = lightfield_loss(params, target, normals, directions, self.solid_angles,
                                   self.config.below_horizon_weight)
         if self.mode == "per_texel" and self.axis_alignment > 0 and self.neighbours is not None:
@@ -333,11 +365,13 @@ class Trainer:
         return state
 
     def _plateaued(self) -> bool:
-        losses, window = self.state.losses, self.config.plateau_epochs
-        if len(losses) <= window:
+        losses = self.state.losses
+        steps_per_epoch = math.ceil(len(self.data.images) / max(1, min(self.config.batch_texels, len(self.data.images))))
+        window = max(self.config.plateau_epochs, math.ceil(self.config.plateau_steps / steps_per_epoch))
+        if len(losses) < 2 * window:
             return False
-        best_before = min(losses[:-window])
-        return min(losses[-window:]) > best_before * (1 - self.config.plateau_rel)
+        last, before = np.mean(losses[-window:]), np.mean(losses[-2 * window:-window])
+        return last > before * (1 - self.config.plateau_rel)
 
     # --- checkpoints (torch.load with weights_only=True: no pickle of arbitrary objects) --------------
     def save(self, path: Path):
@@ -414,3 +448,21 @@ def error_metrics(prediction: np.ndarray, target: np.ndarray, normals: np.ndarra
     linear_error = (target.astype(np.float64) - prediction) ** 2
     return {"loss": float((log_error * w).sum() / total), "rmse_log": float(np.sqrt((log_error * w).sum() / total)),
             "rmse": float(np.sqrt((linear_error * w).sum() / total))}
+
+
+def glossy_error(prediction: np.ndarray, target: np.ndarray, normals: np.ndarray, roughness: float) -> float:
+    """Relative RMSE of the reflected radiance a surface of `roughness` sees (both light fields prefiltered by its
+    GGX lobe, the prediction cut at the horizon as the render cuts the target), over reflection directions above
+    each texel's horizon, weighted by solid angle. The error that decides how many SGs a material needs."""
+    from shaders.env_visibility import above_horizon_fraction, glossy_prefilter
+
+    resolution = target.shape[1]
+    normals = np.asarray(normals, np.float64)
+    horizon = above_horizon_fraction(normals, resolution)[..., None]  # (T, P, 1)
+    flat = prediction.reshape(len(prediction), -1, prediction.shape[-1])
+    predicted = glossy_prefilter(flat * horizon, resolution, roughness)
+    expected = glossy_prefilter(target, resolution, roughness)
+    above = normals @ pixel_directions(resolution).reshape(-1, 3).T > 0
+    w = (exact_solid_angles(resolution).reshape(1, -1) * above)[..., None]
+    return float(np.sqrt((w * (predicted - expected) ** 2).sum() / max((w * expected ** 2).sum(), 1e-30)))
+

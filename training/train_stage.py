@@ -7,6 +7,7 @@ Checkpoints live in DIR/train/ and are loaded with weights_only=True; a second r
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import sys
 import time
@@ -38,6 +39,7 @@ class TrainResult:
 
 ENV_SGS_FILE = "env_sgs.json"
 ENV_SG_COUNT = 16
+FIXED_SG_COUNT = 12
 ENV_FIT_SECONDS = 10.0
 
 
@@ -64,24 +66,39 @@ def fit_environment_sgs(out_dir: Path, plan_hash: str, device: str = "cpu") -> d
     return data_out
 
 
+def texel_lobe_counts(atlas, texel_info: dict, texels: np.ndarray, plan: BakePlan) -> np.ndarray:
+    """(T,) SGs each texel may use: its material's N from the plan (the most N for texels of materials that get
+    no SGs: they sit beside glossy texels and bilinear lookups blend them in)."""
+    most = plan.max_sg_count or plan.settings.sg_count or 16
+    by_name = {m.name: m.sg_count for o in plan.baked_objects for m in o.materials if m.glossy}
+    by_id = np.full(len(texel_info["materials"]) + 1, most, np.int64)
+    for material in texel_info["materials"]:
+        by_id[material["id"]] = by_name.get(material["name"], most)
+    material_ids = channels(atlas, "material_id")[texels[:, 0], texels[:, 1]].astype(np.int64)
+    return by_id[np.clip(material_ids, 0, len(by_id) - 1)]
+
+
 def train_stage(out_dir, plan: BakePlan, *, progress=None, should_cancel=lambda: False, **options) -> TrainResult:
     """Train every kind the plan needs and write SG textures; resumable from DIR/train checkpoints."""
     return drive(train_steps(out_dir, plan, **options), progress, should_cancel,
                  "training cancelled; the checkpoint resumes it")
 
 
-def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budget_s: float | None = None):
+def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budget_s: float | None = None,
+                encoder: str = "cnn"):
     """The train stage as a generator: yields (fraction, message) after every epoch, returns TrainResult.
-    Closing it early saves the checkpoint, so the next run continues the same curve."""
+    Closing it early saves the checkpoint, so the next run continues the same curve. encoder 'fixed_sg' swaps in
+    the fixed-axis SG12 baseline (the benchmark's comparison at equal bytes), written as the same SG textures."""
     import torch
 
+    from training.baselines import bytes_per_texel_fixed_sg, fit_fixed_sg
     from training.sg_fit import (LightFieldData, TrainConfig, Trainer, error_metrics, midpoint_parameters,
                                  pair_indices, reconstruct, unit_midpoint)
 
     start = time.perf_counter()
     out_dir = Path(out_dir)
     plan_hash = plan.stage_hash("train")
-    atlas, _ = read_texel_maps(out_dir, plan.stage_hash("capture"))
+    atlas, texel_info = read_texel_maps(out_dir, plan.stage_hash("capture"))
     settings = plan.settings
     device = device or settings.device
     if device == "cuda" and not torch.cuda.is_available():
@@ -93,30 +110,42 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
     for k, kind in enumerate(kinds):
         texels, images = read_images(out_dir / kind, plan.stage_hash("render"))
         normals = channels(atlas, "Ng.X", 3)[texels[:, 0], texels[:, 1]]
-        data = LightFieldData.from_numpy(images, normals, device=device)
-        config = TrainConfig(sg_count=sg_count, time_budget_s=budget / len(kinds), device=device)
-        # Keyed by the rendered data and N, not the budget: a larger budget continues the same curve.
-        checkpoint = out_dir / "train" / f"{kind}_{plan.stage_hash('render')}_n{sg_count}.pt"
-        trainer = Trainer(data, config, checkpoint=checkpoint)
+        if encoder == "fixed_sg":  # the production-lightmapper baseline, through the same textures and node group
+            yield (k + 0.5) / len(kinds), f"{kind}: fixed SG{FIXED_SG_COUNT} amplitudes by NNLS"
+            axes, shared_sharpness, amps = fit_fixed_sg(images, normals, FIXED_SG_COUNT)
+            axis = np.broadcast_to(axes, amps.shape[:2] + (3,)).astype(np.float32)
+            sharpness = np.full(amps.shape[:2], shared_sharpness, np.float32)
+            amplitude = amps.astype(np.float32)
+            epochs, stopped_because = 0, "least squares"
+        else:
+            counts = texel_lobe_counts(atlas, texel_info, texels, plan)
+            data = LightFieldData.from_numpy(images, normals, device=device,
+                                             lobe_counts=None if counts.min() == sg_count else counts)
+            config = TrainConfig(sg_count=sg_count, time_budget_s=budget / len(kinds), device=device)
+            # Keyed by the rendered data and the SG counts, not the budget: a larger budget continues the same curve.
+            counts_key = hashlib.sha256(counts.tobytes()).hexdigest()[:8]
+            checkpoint = out_dir / "train" / f"{kind}_{plan.stage_hash('render')}_n{sg_count}_{counts_key}.pt"
+            trainer = Trainer(data, config, checkpoint=checkpoint)
 
-        last_save = time.perf_counter()
-        try:
-            while True:
-                state = trainer.train(epochs=1, save_checkpoint=False)
-                if time.perf_counter() - last_save > config.checkpoint_every_s:
-                    trainer.save(trainer.checkpoint)
-                    last_save = time.perf_counter()
-                if state.stopped_because != "epochs":
-                    break
-                fraction = min(state.seconds[-1] / max(config.time_budget_s, 1e-9), 1.0)
-                yield (k + fraction) / len(kinds), f"{kind}: epoch {state.epoch}, loss {state.losses[-1]:.5f}"
-        finally:
-            trainer.save(trainer.checkpoint)
-        axis, sharpness, amplitude = trainer.parameters_numpy()
-        prediction = reconstruct(axis, sharpness, amplitude, data.resolution)
+            last_save = time.perf_counter()
+            try:
+                while True:
+                    state = trainer.train(epochs=1, save_checkpoint=False)
+                    if time.perf_counter() - last_save > config.checkpoint_every_s:
+                        trainer.save(trainer.checkpoint)
+                        last_save = time.perf_counter()
+                    if state.stopped_because != "epochs":
+                        break
+                    fraction = min(state.seconds[-1] / max(config.time_budget_s, 1e-9), 1.0)
+                    yield (k + fraction) / len(kinds), f"{kind}: epoch {state.epoch}, loss {state.losses[-1]:.5f}"
+            finally:
+                trainer.save(trainer.checkpoint)
+            axis, sharpness, amplitude = trainer.parameters_numpy()
+            epochs, stopped_because = state.epoch, state.stopped_because
+        prediction = reconstruct(axis, sharpness, amplitude, images.shape[1])
         metrics = error_metrics(prediction, images, normals)
         picture = f"train_{kind}.png"  # rendered (left) | SG reconstruction (right), 16 texels each
-        above = above_horizon_fraction(normals, data.resolution).reshape(prediction.shape[:3])[..., None]
+        above = above_horizon_fraction(normals, images.shape[1]).reshape(prediction.shape[:3])[..., None]
         target_mosaic, predicted_mosaic = preview_mosaic(images), preview_mosaic(prediction * above)
         gap = np.ones((target_mosaic.shape[0], 2, 3))
         save_png(out_dir / picture, np.concatenate([target_mosaic, gap, predicted_mosaic], axis=1))
@@ -126,23 +155,25 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
             # against the rendered, held-out midpoint light field.
             pairs, held_out = read_images(out_dir / "midpoints", plan.stage_hash("render"))
             a, b = pair_indices(texels, pairs)
-            prediction = reconstruct(*midpoint_parameters(axis, sharpness, amplitude, a, b), data.resolution)
+            prediction = reconstruct(*midpoint_parameters(axis, sharpness, amplitude, a, b), images.shape[1])
             metrics["midpoint"] = error_metrics(prediction, held_out, unit_midpoint(normals[a], normals[b]))
         path = sg_texture_path(out_dir, kind)
         write_sg_texture(path, texels, axis, sharpness, amplitude, atlas.shape[:2],
-                         {"plan_hash": plan_hash, "kind": kind, "epochs": state.epoch})
+                         {"plan_hash": plan_hash, "kind": kind, "epochs": epochs, "encoder": encoder})
         result.files.append(path.name)
         result.metrics[kind] = {k2: (round(v, 6) if isinstance(v, float) else v) for k2, v in metrics.items()}
-        result.epochs[kind] = state.epoch
-        result.stopped_because[kind] = state.stopped_because
-        result.bytes_per_texel += bytes_per_texel(sg_count, images.shape[-1])
+        result.epochs[kind] = epochs
+        result.stopped_because[kind] = stopped_because
+        result.bytes_per_texel += (bytes_per_texel_fixed_sg(FIXED_SG_COUNT, images.shape[-1]) if encoder == "fixed_sg"
+                                   else bytes_per_texel(sg_count, images.shape[-1]))
     if plan.environment.iwev:
         yield 0.99, "environment SGs"
         env = fit_environment_sgs(out_dir, plan_hash, device)
         result.files.append(ENV_SGS_FILE)
         result.metrics["environment"] = env["metrics"]
     result.seconds = time.perf_counter() - start
-    update_report(out_dir, plan.stage_hash("capture"), timings_s={"train": result.seconds}, sg_count=sg_count,
+    update_report(out_dir, plan.stage_hash("capture"), timings_s={"train": result.seconds}, encoder=encoder,
+                  sg_count=FIXED_SG_COUNT if encoder == "fixed_sg" else sg_count,
                   bytes_per_texel=result.bytes_per_texel,
                   train={"metrics": result.metrics, "epochs": result.epochs, "stopped_because": result.stopped_because,
                          "device": device, "files": result.files})
