@@ -341,6 +341,8 @@ def build_stability_variant(variant: str):
     else:
         scale = float(variant.split("_")[1])
         for obj in scene.objects:
-            if obj.parent is None:
-                obj.matrix_world = Matrix.Scale(scale, 4) @ obj.matrix_world
+            if obj.parent is None:  # matrix_basis: matrix_world of a camera placed by location is not yet evaluated
+                obj.matrix_basis = Matrix.Scale(scale, 4) @ obj.matrix_basis
+            if obj.type == "CAMERA":  # the camera must still see the scaled scene
+                obj.data.clip_start, obj.data.clip_end = obj.data.clip_start * scale, obj.data.clip_end * scale
     return scene, scale

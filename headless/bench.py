@@ -540,7 +540,7 @@ def bench_knobs(out_root: Path, scene_name: str = "spheres", sweep=None) -> list
     return rows
 
 
-def bench_stability(out_root: Path) -> list[dict]:
+def bench_stability(out_root: Path, variants=None) -> list[dict]:
     """The numerical-stability sweep: each extreme `spheres` variant (demo_scenes.STABILITY_VARIANTS) baked end to
     end at small settings and evaluated against its Cycles reference. Reports whether every output (texel maps,
     light fields, SG textures, packed image, the baked render) is finite, and the errors."""
@@ -555,7 +555,7 @@ def bench_stability(out_root: Path) -> list[dict]:
     from shaders.texel_maps import read_texel_maps
 
     rows = []
-    for variant in STABILITY_VARIANTS:
+    for variant in variants or STABILITY_VARIANTS:
         scene, scale = build_stability_variant(variant)
         out = out_root / f"stability_{variant}"
         settings = BakeSettings.from_preset("draft", texel_density=4.0 / scale, lightfield_resolution=8, samples=16,
@@ -651,7 +651,15 @@ def main(argv=None) -> int:
         from headless.bench_hair import bench_hair
 
         results["hair"] = bench_hair(ns.out, ns.hair_data, ns.quick)
-    write_json_atomic(ns.out / "bench.json", results)
+    merged = {}  # sections run earlier into the same folder are kept
+    if (ns.out / "bench.json").is_file():
+        import json
+
+        try:
+            merged = json.loads((ns.out / "bench.json").read_text())
+        except ValueError:
+            merged = {}
+    write_json_atomic(ns.out / "bench.json", {**merged, **results})
     print(f"\nwritten: {ns.out / 'bench.json'}")
     return 0
 
