@@ -460,7 +460,7 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0) -> list[dict]:
         errors = evaluate_stage(scene, plan, out, views=2, with_eevee=False)
         remove_bake(scene)
         classes = errors["flip_by_roughness"]
-        glossy = [classes[k] for k in classes if not k.startswith("roughness >=")]
+        glossy = [classes[k] for k in classes if not k.startswith("roughness >=") and classes[k]["pixels"]]
         pixels = sum(c["pixels"] for c in glossy)
         atlas, _ = read_texel_maps(out)
         texels, images = read_images(out / "lightfield")
@@ -469,8 +469,9 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0) -> list[dict]:
         r, c = texels[:, 0], texels[:, 1]
         prediction = reconstruct(axis[r, c], sharpness[r, c], amplitude[r, c], images.shape[1])
         rows.append({"encoder": name, "bytes_per_texel": trained.bytes_per_texel,
-                     "glossy_rmse": round(float(np.sqrt(sum(c["rmse"] ** 2 * c["pixels"] for c in glossy) / pixels)), 4),
-                     "glossy_flip": round(sum(c["flip"] * c["pixels"] for c in glossy) / pixels, 4),
+                     "glossy_rmse": round(float(np.sqrt(sum(c["rmse"] ** 2 * c["pixels"] for c in glossy)
+                                                        / max(pixels, 1))), 4),
+                     "glossy_flip": round(sum(c["flip"] * c["pixels"] for c in glossy) / max(pixels, 1), 4),
                      "flip": round(errors["flip"], 4), "reflected_error": reflected_errors(prediction, images, normals),
                      "fit_s": round(trained.seconds, 1)})
         if encoder == "cnn" and sg_count == 4:
