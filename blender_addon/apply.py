@@ -187,9 +187,12 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
     image = _load_image(path, pack_images)
     groups = {}  # SG count -> node group evaluating that many SGs of the packed image
 
-    def group_for(count: int):
+    def evaluated_count(planned: int) -> int:
         # Textures with another SG count than the plan's (the fixed-SG baseline) are evaluated whole everywhere.
-        count = min(count, layout.sg_count) if layout.sg_count == plan.max_sg_count else layout.sg_count
+        return min(planned, layout.sg_count) if layout.sg_count == plan.max_sg_count else layout.sg_count
+
+    def group_for(planned: int):
+        count = evaluated_count(planned)
         if count not in groups:
             fewer = SGTextureLayout(count, min(count, layout.iwev_count), layout.has_irradiance, layout.atlas_size,
                                     tiles=layout.tiles)  # the same tiles: only the first `count` SGs are read
@@ -223,8 +226,7 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
     scene[BAKE_RECORD_KEY] = json.dumps(record)
     _remove_unused_groups()  # of an earlier bake with other SG counts
     seconds = time.perf_counter() - start
-    sg_counts = {m.name: int(group_for(m.sg_count)["sglf_sg_count"]) for o in plan.baked_objects
-                 for m in o.materials if m.glossy}
+    sg_counts = {m.name: evaluated_count(m.sg_count) for o in plan.baked_objects for m in o.materials if m.glossy}
     most = groups.get(layout.sg_count)
     info = {"materials": sorted(baked_materials), "node_group": most.name if most else None,
             "nodes": len(most.nodes) if most else 0,

@@ -417,6 +417,16 @@ def bench_presets(out_root: Path, scenes, presets) -> list[dict]:
     return rows
 
 
+def _over_glossy(classes: dict, key: str = "flip") -> float:
+    """Pixel-weighted mean of `key` over the roughness classes of glossy (baked) pixels that have pixels; an RMSE
+    key is averaged as a mean square."""
+    names = [k for k in classes if not k.startswith("roughness >=") and classes[k]["pixels"]]
+    total = max(sum(classes[k]["pixels"] for k in names), 1)
+    if key == "rmse":
+        return math.sqrt(sum(classes[k][key] ** 2 * classes[k]["pixels"] for k in names) / total)
+    return sum(classes[k][key] * classes[k]["pixels"] for k in names) / total
+
+
 def bench_encoders(out_root: Path, budget_s: float = 60.0) -> list[dict]:
     """The free SGs against the production lightmappers' encodings at equal bytes per texel, on `spheres`: CNN with
     5 SGs (70 B) against fixed SG12 by NNLS (72 B), both baked, applied through the same node group and evaluated
@@ -460,8 +470,6 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0) -> list[dict]:
         errors = evaluate_stage(scene, plan, out, views=2, with_eevee=False)
         remove_bake(scene)
         classes = errors["flip_by_roughness"]
-        glossy = [classes[k] for k in classes if not k.startswith("roughness >=") and classes[k]["pixels"]]
-        pixels = sum(c["pixels"] for c in glossy)
         atlas, _ = read_texel_maps(out)
         texels, images = read_images(out / "lightfield")
         normals = channels(atlas, "Ng.X", 3)[texels[:, 0], texels[:, 1]].astype(np.float64)
@@ -469,9 +477,8 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0) -> list[dict]:
         r, c = texels[:, 0], texels[:, 1]
         prediction = reconstruct(axis[r, c], sharpness[r, c], amplitude[r, c], images.shape[1])
         rows.append({"encoder": name, "bytes_per_texel": trained.bytes_per_texel,
-                     "glossy_rmse": round(float(np.sqrt(sum(c["rmse"] ** 2 * c["pixels"] for c in glossy)
-                                                        / max(pixels, 1))), 4),
-                     "glossy_flip": round(sum(c["flip"] * c["pixels"] for c in glossy) / max(pixels, 1), 4),
+                     "glossy_rmse": round(_over_glossy(classes, "rmse"), 4),
+                     "glossy_flip": round(_over_glossy(classes, "flip"), 4),
                      "flip": round(errors["flip"], 4), "reflected_error": reflected_errors(prediction, images, normals),
                      "fit_s": round(trained.seconds, 1)})
         if encoder == "cnn" and sg_count == 4:
@@ -522,16 +529,12 @@ def bench_knobs(out_root: Path, scene_name: str = "spheres", sweep=None) -> list
         job.run()
         errors = evaluate_stage(scene, job.plan, out, views=2, with_eevee=False)
         classes = errors["flip_by_roughness"]
-        glossy = [classes[k] for k in classes if not k.startswith("roughness >=") and classes[k]["pixels"]]
-        pixels = sum(c["pixels"] for c in glossy)
         report = json.loads((out / "report.json").read_text())
-        noise = [errors["reference_noise_flip_by_roughness"][k] for k in classes
-                 if not k.startswith("roughness >=") and classes[k]["pixels"]]
         rows.append({"run": label, "bake_s": round(sum(job.timings.values()), 1),
-                     "glossy_noise_flip": round(sum(c["flip"] * c["pixels"] for c in noise) / max(pixels, 1), 4),
+                     "glossy_noise_flip": round(_over_glossy(errors["reference_noise_flip_by_roughness"]), 4),
                      "stages_s": {k: round(v, 1) for k, v in job.timings.items()},
                      "flip": round(errors["flip"], 4),
-                     "glossy_flip": round(sum(c["flip"] * c["pixels"] for c in glossy) / max(pixels, 1), 4),
+                     "glossy_flip": round(_over_glossy(classes), 4),
                      "texels": report.get("texels"), "bytes_per_texel": report.get("bytes_per_texel"),
                      "reference_noise_rmse": round(errors["reference_noise_rmse"], 4)})
         r = rows[-1]

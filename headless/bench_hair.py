@@ -99,6 +99,8 @@ def _grooms():
 
 
 def bench_quality(data: Path, models: dict, out_root: Path, max_pairs: int = 40, pictures: int = 3) -> dict:
+    from blender_addon.hair import render_reference
+
     filters = {spp: load_filter(path) for spp, path in models.items()}
     groom = _grooms()
     tables, rows_img = {}, []
@@ -108,8 +110,6 @@ def bench_quality(data: Path, models: dict, out_root: Path, max_pairs: int = 40,
                    if wanted is None or hair_pairs.split_of(i) == wanted][:max_pairs]
         scores = {}
         for n, index in enumerate(indices):
-            from blender_addon.hair import render_reference
-
             _, _, meta = hair_pairs.read_pair(directory, index)
             camera = hair_raster.PinholeCamera(np.array(meta["world_to_camera"]), meta["focal_px"],
                                                meta["size"], meta["size"])

@@ -246,5 +246,4 @@ def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GRO
                   else (*result[key], 1.0))
     group[VERSION_KEY] = GROUP_VERSION
     group["sglf_layout"] = str(layout.to_dict())
-    group["sglf_sg_count"] = layout.sg_count
     return group

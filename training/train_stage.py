@@ -66,10 +66,9 @@ def fit_environment_sgs(out_dir: Path, plan_hash: str, device: str = "cpu") -> d
     return data_out
 
 
-def texel_lobe_counts(atlas, texel_info: dict, texels: np.ndarray, plan: BakePlan) -> np.ndarray:
-    """(T,) SGs each texel may use: its material's N from the plan (the most N for texels of materials that get
-    no SGs: they sit beside glossy texels and bilinear lookups blend them in)."""
-    most = plan.max_sg_count or plan.settings.sg_count or 16
+def texel_lobe_counts(atlas, texel_info: dict, texels: np.ndarray, plan: BakePlan, most: int) -> np.ndarray:
+    """(T,) SGs each texel may use: its material's N from the plan (`most` for texels of materials that get no
+    SGs: they sit beside glossy texels and bilinear lookups blend them in)."""
     by_name = {m.name: m.sg_count for o in plan.baked_objects for m in o.materials if m.glossy}
     by_id = np.full(len(texel_info["materials"]) + 1, most, np.int64)
     for material in texel_info["materials"]:
@@ -117,8 +116,9 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
             sharpness = np.full(amps.shape[:2], shared_sharpness, np.float32)
             amplitude = amps.astype(np.float32)
             epochs, stopped_because = 0, "least squares"
+            texel_bytes = bytes_per_texel_fixed_sg(FIXED_SG_COUNT, images.shape[-1])  # axes and sharpness shared
         else:
-            counts = texel_lobe_counts(atlas, texel_info, texels, plan)
+            counts = texel_lobe_counts(atlas, texel_info, texels, plan, sg_count)
             data = LightFieldData.from_numpy(images, normals, device=device,
                                              lobe_counts=None if counts.min() == sg_count else counts)
             config = TrainConfig(sg_count=sg_count, time_budget_s=budget / len(kinds), device=device)
@@ -142,6 +142,7 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
                 trainer.save(trainer.checkpoint)
             axis, sharpness, amplitude = trainer.parameters_numpy()
             epochs, stopped_because = state.epoch, state.stopped_because
+            texel_bytes = bytes_per_texel(sg_count, images.shape[-1])
         prediction = reconstruct(axis, sharpness, amplitude, images.shape[1])
         metrics = error_metrics(prediction, images, normals)
         picture = f"train_{kind}.png"  # rendered (left) | SG reconstruction (right), 16 texels each
@@ -164,8 +165,7 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
         result.metrics[kind] = {k2: (round(v, 6) if isinstance(v, float) else v) for k2, v in metrics.items()}
         result.epochs[kind] = epochs
         result.stopped_because[kind] = stopped_because
-        result.bytes_per_texel += (bytes_per_texel_fixed_sg(FIXED_SG_COUNT, images.shape[-1]) if encoder == "fixed_sg"
-                                   else bytes_per_texel(sg_count, images.shape[-1]))
+        result.bytes_per_texel += texel_bytes
     if plan.environment.iwev:
         yield 0.99, "environment SGs"
         env = fit_environment_sgs(out_dir, plan_hash, device)
@@ -173,7 +173,7 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
         result.metrics["environment"] = env["metrics"]
     result.seconds = time.perf_counter() - start
     update_report(out_dir, plan.stage_hash("capture"), timings_s={"train": result.seconds}, encoder=encoder,
-                  sg_count=FIXED_SG_COUNT if encoder == "fixed_sg" else sg_count,
+                  sg_count=amplitude.shape[1],
                   bytes_per_texel=result.bytes_per_texel,
                   train={"metrics": result.metrics, "epochs": result.epochs, "stopped_because": result.stopped_because,
                          "device": device, "files": result.files})
