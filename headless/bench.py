@@ -281,7 +281,6 @@ def bench_sg_count(out_root: Path, scenes=("spheres", "room"), budget_s: float =
     import torch
 
     from shaders.bake_plan import SG_COUNT_CANDIDATES, SG_COUNT_ERROR_BUDGET
-    from shaders.env_visibility import above_horizon_fraction
     from training.sg_fit import LightFieldData, TrainConfig, Trainer, glossy_error, reconstruct
 
     roughnesses = (0.05, 0.15, 0.25, 0.35, 0.45, 0.55)
@@ -289,13 +288,12 @@ def bench_sg_count(out_root: Path, scenes=("spheres", "room"), budget_s: float =
     for scene_name in scenes:
         _, images, normals, _, _ = _rendered_lightfields(out_root, scene_name)
         data = LightFieldData.from_numpy(images, normals)
-        horizon = above_horizon_fraction(normals, images.shape[1]).reshape(images.shape[:3])[..., None]
         errors[scene_name] = {}
         for n in SG_COUNT_CANDIDATES:
             torch.manual_seed(0)
             trainer = Trainer(data, TrainConfig(sg_count=n, time_budget_s=budget_s, plateau_epochs=10**9))
             trainer.train()
-            prediction = reconstruct(*trainer.parameters_numpy(), images.shape[1]) * horizon
+            prediction = reconstruct(*trainer.parameters_numpy(), images.shape[1])  # glossy_error cuts the horizon
             errors[scene_name][n] = [glossy_error(prediction, images, normals, r) for r in roughnesses]
             print(f"sg count {scene_name} N={n:>2}: " + ", ".join(
                 f"r {r:.2f}: {e:.4f}" for r, e in zip(roughnesses, errors[scene_name][n])), flush=True)
@@ -441,7 +439,6 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0) -> list[dict]:
     from blender_addon.evaluate import evaluate_stage
     from blender_addon.render import render_stage
     from blender_addon.scene_analysis import build_plan
-    from shaders.env_visibility import above_horizon_fraction
     from shaders.lightfield_tiles import read_images
     from shaders.sg_textures import read_sg_texture
     from shaders.texel_maps import channels, read_texel_maps
@@ -452,9 +449,8 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0) -> list[dict]:
     roughnesses = (0.2, 0.3, 0.4, 0.5)  # the spheres'
     rows = []
 
-    def reflected_errors(prediction, images, normals):
-        cut = prediction * above_horizon_fraction(normals, images.shape[1]).reshape(images.shape[:3])[..., None]
-        return [round(glossy_error(cut, images, normals, r), 4) for r in roughnesses]
+    def reflected_errors(prediction, images, normals):  # glossy_error cuts the prediction at the horizon itself
+        return [round(glossy_error(prediction, images, normals, r), 4) for r in roughnesses]
 
     for name, sg_count, encoder in (("free SG5 (CNN)", 5, "cnn"), ("fixed SG12 (NNLS)", 5, "fixed_sg"),
                                     ("free SG4 (CNN)", 4, "cnn")):
