@@ -14,6 +14,7 @@ how far the SG irradiance is from it (report.json: apply.irradiance_from_sgs_rel
 from __future__ import annotations
 
 import json
+import math
 import time
 from pathlib import Path
 
@@ -28,8 +29,9 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.node_group import GROUP_NAME, VERSION_KEY, SGTextureLayout, build_node_group
     from ..shaders.octahedral import pixel_directions, pixel_solid_angles
     from ..shaders.sg_math import sg_irradiance
-    from ..shaders.sg_shading import encode_sharpness
-    from ..shaders.sg_textures import pack_tiles, read_sg_texture, scatter_dilated, sg_texture_path
+    from ..shaders.sg_shading import SH_L2_BAND, NumpyOps, encode_sharpness, sh_l2_basis
+    from ..shaders.sg_textures import (is_sh_texture, pack_tiles, read_sg_texture, read_sh_texture, scatter_dilated,
+                                   sg_texture_path)
     from ..shaders.texel_maps import channels, read_texel_maps
     from .capture import LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, remove_lightmap_uvs
     from .scene_analysis import BAKED_COPY_KEY, principled_surface
@@ -43,8 +45,9 @@ except ImportError:  # bpy as a module with the repository on sys.path
     from shaders.node_group import GROUP_NAME, VERSION_KEY, SGTextureLayout, build_node_group
     from shaders.octahedral import pixel_directions, pixel_solid_angles
     from shaders.sg_math import sg_irradiance
-    from shaders.sg_shading import encode_sharpness
-    from shaders.sg_textures import pack_tiles, read_sg_texture, scatter_dilated, sg_texture_path
+    from shaders.sg_shading import SH_L2_BAND, NumpyOps, encode_sharpness, sh_l2_basis
+    from shaders.sg_textures import (is_sh_texture, pack_tiles, read_sg_texture, read_sh_texture, scatter_dilated,
+                                   sg_texture_path)
     from shaders.texel_maps import channels, read_texel_maps
 
 BAKE_RECORD_KEY = "sglf_bake"  # on the scene: JSON {object: {slot index: original material}}
@@ -68,8 +71,14 @@ def build_packed_image(out_dir: Path, plan) -> tuple[SGTextureLayout, Path, dict
     """Pack SG + irradiance tiles into DIR/sg_packed.exr (half RGBA); returns layout, path and measurements."""
     atlas, _ = read_texel_maps(out_dir, plan.stage_hash("capture"))
     shape = atlas.shape[:2]
-    axis, sharpness, amplitude, meta = read_sg_texture(sg_texture_path(out_dir, "lightfield"), plan.stage_hash("train"))
-    n = int(meta["sg_count"])
+    lightfield = sg_texture_path(out_dir, "lightfield")
+    sh = is_sh_texture(lightfield)  # the benchmark's SH L2 baseline instead of SGs
+    if sh:
+        coefficients, _ = read_sh_texture(lightfield, plan.stage_hash("train"))
+        n = 0
+    else:
+        axis, sharpness, amplitude, meta = read_sg_texture(lightfield, plan.stage_hash("train"))
+        n = int(meta["sg_count"])
     texels, images = read_images(out_dir / "lightfield", plan.stage_hash("render"))
     shading = channels(atlas, "N.X", 3)[texels[:, 0], texels[:, 1]].astype(np.float64)
     irradiance = irradiance_from_lightfields(images, shading)
@@ -79,11 +88,16 @@ def build_packed_image(out_dir: Path, plan) -> tuple[SGTextureLayout, Path, dict
             raise BakeInputError(f"{out_dir}: env_occluded and lightfield texels differ; render again")
         irradiance = irradiance + irradiance_from_lightfields(sky, shading)
     r, c = texels[:, 0], texels[:, 1]
-    from_sgs = sg_irradiance(axis[r, c].astype(np.float64), sharpness[r, c].astype(np.float64),
-                             amplitude[r, c].astype(np.float64), shading[:, None, :]).sum(axis=1)
+    if sh:  # Funk-Hecke with the clamped cosine: bands scaled by pi, 2 pi / 3, pi / 4
+        basis = np.stack(np.broadcast_arrays(*sh_l2_basis(NumpyOps(), shading)), -1)  # (T, 9)
+        cosine_bands = np.array([(math.pi, 2 * math.pi / 3, math.pi / 4)[band] for band in SH_L2_BAND])
+        from_encoding = np.einsum("tk,tkc->tc", basis * cosine_bands, coefficients[r, c].astype(np.float64))
+    else:
+        from_encoding = sg_irradiance(axis[r, c].astype(np.float64), sharpness[r, c].astype(np.float64),
+                                      amplitude[r, c].astype(np.float64), shading[:, None, :]).sum(axis=1)
     lit = irradiance.sum(axis=1) > 1e-6 * max(irradiance.sum(axis=1).max(), 1e-30)
-    rel = np.abs(from_sgs - irradiance).sum(axis=1)[lit] / irradiance.sum(axis=1)[lit]
-    iwev_count, env_sgs = 0, []
+    rel = np.abs(from_encoding - irradiance).sum(axis=1)[lit] / irradiance.sum(axis=1)[lit]
+    iwev_count, env_sgs, tiles = 0, [], {}
     if plan.environment.iwev:
         w_axis, w_sharpness, w_amplitude, w_meta = read_sg_texture(sg_texture_path(out_dir, "env_visibility"),
                                                                    plan.stage_hash("train"))
@@ -95,8 +109,10 @@ def build_packed_image(out_dir: Path, plan) -> tuple[SGTextureLayout, Path, dict
         if env.get("plan_hash") != plan.stage_hash("train"):
             raise BakeInputError(f"{env_path}: made for another plan; run the train stage again")
         env_sgs = [tuple(sg) for sg in env["sgs"]]
-    layout = SGTextureLayout(n, iwev_count=iwev_count, has_irradiance=True, atlas_size=(shape[1], shape[0]))
-    tiles = {}
+    layout = SGTextureLayout(n, iwev_count=iwev_count, has_irradiance=True, atlas_size=(shape[1], shape[0]),
+                             sh_count=coefficients.shape[2] if sh else 0)
+    for j in range(layout.sh_count):
+        tiles[("sh", j)] = np.concatenate([coefficients[..., j, :], np.zeros(shape + (1,))], -1)
     for j in range(iwev_count):
         amp = w_amplitude[..., j, :]
         amp = np.repeat(amp, 3, axis=-1) if amp.shape[-1] == 1 else amp  # mono W_E: the same value in R, G, B
@@ -193,6 +209,8 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
 
     def group_for(planned: int):
         count = evaluated_count(planned)
+        if count not in groups and layout.sh_count:
+            groups[count] = build_node_group(image, layout, env_sgs, f"{GROUP_NAME} (SH L2)")
         if count not in groups:
             fewer = SGTextureLayout(count, min(count, layout.iwev_count), layout.has_irradiance, layout.atlas_size,
                                     tiles=layout.tiles)  # the same tiles: only the first `count` SGs are read
@@ -231,7 +249,9 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
     info = {"materials": sorted(baked_materials), "node_group": most.name if most else None,
             "nodes": len(most.nodes) if most else 0,
             "node_groups": {g.name: len(g.nodes) for g in groups.values()}, "sg_counts": sg_counts,
-            "sg_evaluations_saved": round(1 - sum(sg_counts.values()) / max(layout.sg_count * len(sg_counts), 1), 3),
+            "sg_evaluations_saved": None if layout.sh_count else
+            round(1 - sum(sg_counts.values()) / max(layout.sg_count * len(sg_counts), 1), 3),
+            "encoder": "sh_l2" if layout.sh_count else "sg",
             "image": image.name, "image_packed": bool(image.packed_file), "layout": layout.to_dict(), **measured}
     update_report(out_dir, plan.stage_hash("capture"), timings_s={"apply": seconds}, apply=info)
     if progress is not None:

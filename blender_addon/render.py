@@ -12,7 +12,9 @@ Passes (directories in the bake directory, see shaders/lightfield_tiles.py):
   env_visibility   W_E per texel (shaders/env_visibility.py) from an L_E*V render: world visible, every
                    surface a holdout (black), lamps left out, primary rays only.
   env_occluded     those L_E*V images themselves (the diffuse irradiance from the sky needs them).
-  midpoints        optional held-out light fields at midpoints between neighbouring texels.
+  midpoints        optional held-out light fields at midpoints between neighbouring texels, rendered with
+                   MIDPOINT_SAMPLES_FACTOR times the samples: the interpolation metric then measures the
+                   interpolation, not the noise of its own reference (a few hundred light fields: cheap).
 
 Lamps enter the light field as light sources the texel's rays can hit: copies of the lamps are made
 visible to camera rays (Cycles hides lamps from camera rays by default). A ray only finds a lamp that
@@ -59,6 +61,7 @@ CAMERA_SHADER = Path(__file__).resolve().parent.parent / "shaders" / "lightfield
 LAMP_MIN_PIXEL_FRACTION = 0.5  # of an octahedral pixel's angular radius (about 2/R radians)
 ENV_RADIANCE_SAMPLES = 256
 MIDPOINT_SEED = 20200
+MIDPOINT_SAMPLES_FACTOR = 16
 PREVIEW_TEXELS = 16
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 TEMP_PREFIX = "SGLF render"
@@ -286,7 +289,7 @@ class _RenderScene:
             scene.cycles.max_bounces = 0
         else:
             scene.cycles.max_bounces = self.source.cycles.max_bounces
-        scene.cycles.samples = ENV_RADIANCE_SAMPLES if kind == "env_radiance" else settings.samples
+        scene.cycles.samples = ENV_RADIANCE_SAMPLES if kind == "env_radiance" else pass_samples(kind, settings.samples)
 
     def render(self, positions, normals, offsets, flags, columns, rows, resolution, name) -> np.ndarray:
         """Render `columns` x `rows` blocks; inputs are (count, 3) arrays; returns (H, W, 3) float32."""
@@ -311,6 +314,11 @@ class _RenderScene:
             Path(key).unlink(missing_ok=True)
         output.unlink(missing_ok=True)
         return pixels
+
+
+def pass_samples(kind: str, samples: int) -> int:
+    """Samples per pixel of a pass: the plan's, and MIDPOINT_SAMPLES_FACTOR times that for held-out midpoints."""
+    return min(samples * MIDPOINT_SAMPLES_FACTOR, 65536) if kind == "midpoints" else samples
 
 
 def valid_texels(atlas: np.ndarray) -> np.ndarray:
@@ -384,7 +392,7 @@ def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: i
     for kind, ids, inputs, channel_count in jobs:
         kind_dir = out_dir / kind
         tiles = plan_tiles(ids, resolution, max_megapixels=max_tile_megapixels)
-        index = TileIndex(kind, plan_hash, resolution, settings.samples, channel_count, tiles)
+        index = TileIndex(kind, plan_hash, resolution, pass_samples(kind, settings.samples), channel_count, tiles)
         write_index(kind_dir, index)
         mine = parse_share(share, len(tiles))
         done = [t for t in tiles if t.index in mine and tile_is_finished(kind_dir, index, t)]
@@ -443,7 +451,7 @@ def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: i
                                              resolution, f"{kind}_{tile.index}")
                     seconds = time.perf_counter() - tick
                     render_seconds += seconds
-                    rays += len(positions) * resolution * resolution * settings.samples // 2
+                    rays += len(positions) * resolution * resolution * index.samples // 2
                 if not np.all(np.isfinite(pixels)):
                     result.warnings.append(f"{kind} {tile.file}: non-finite pixels set to 0")
                     pixels = np.nan_to_num(pixels, nan=0.0, posinf=0.0, neginf=0.0)

@@ -22,7 +22,7 @@ writes them to bench_out/bench.json.
             bench_out/pareto.png (bake time vs FLIP). Target: Draft on room <= 5 minutes.
   sgcount   how many SGs a material needs, by roughness: the CNN at N = 2..16 on spheres and room, error of the
             reflected radiance; the measured rule behind shaders/bake_plan.py SG_COUNT_BY_ROUGHNESS; sg_count.png.
-  encoders  free SGs against fixed SG12 (baked, applied, evaluated) and L2 SH at equal bytes per texel, on spheres:
+  encoders  free SGs against fixed SG12 and L2 SH (each baked, applied, evaluated) at equal bytes per texel, on spheres:
             RMSE and FLIP on glossy pixels, reflected-radiance error per roughness. Target: >= 2x lower RMSE.
   stability the numerical-stability sweep: `spheres` at roughness 0 and 1, a 1e5 emitter, no light, scale 1e4 and
             1e-3, each baked and evaluated: every output finite, and the errors.
@@ -358,15 +358,16 @@ def bench_apply(out_root: Path, sg_counts=(4, 8, 16, 32)) -> list[dict]:
     return rows
 
 
-def bench_presets(out_root: Path, scenes, presets) -> list[dict]:
+def bench_presets(out_root: Path, scenes, presets, earlier_rows=()) -> list[dict]:
     """Each preset end to end (capture .. evaluate, EEVEE included) on each scene: bake time, share of time
-    per stage, FLIP overall and per roughness class; a Pareto plot of bake time against FLIP."""
+    per stage, FLIP overall and per roughness class; a Pareto plot of bake time against FLIP. Rows of earlier
+    runs (other scenes or presets, e.g. Production run on its own) are kept unless measured again."""
     import json
 
     from blender_addon.demo_scenes import build_demo_scene
     from blender_addon.pipeline import BakeJob
 
-    rows = []
+    rows = [r for r in earlier_rows if (r["scene"], r["preset"]) not in {(s, p) for s in scenes for p in presets}]
     for name in scenes:
         for preset in presets:
             scene = build_demo_scene(name)
@@ -400,7 +401,8 @@ def bench_presets(out_root: Path, scenes, presets) -> list[dict]:
         import matplotlib.pyplot as plt
 
         figure, axes = plt.subplots(figsize=(6, 4))
-        for name in scenes:
+        rows.sort(key=lambda r: (r["scene"], list(PRESETS).index(r["preset"])))
+        for name in sorted({r["scene"] for r in rows}):
             mine = [r for r in rows if r["scene"] == name]
             axes.plot([r["bake_s"] for r in mine], [r["flip"] for r in mine], "o-", label=name)
             for r in mine:
@@ -427,10 +429,9 @@ def _over_glossy(classes: dict, key: str = "flip") -> float:
 
 def bench_encoders(out_root: Path, budget_s: float = 60.0) -> list[dict]:
     """The free SGs against the production lightmappers' encodings at equal bytes per texel, on `spheres`: CNN with
-    5 SGs (70 B) against fixed SG12 by NNLS (72 B), both baked, applied through the same node group and evaluated
-    against Cycles (RMSE and FLIP on glossy pixels); CNN with 4 SGs (56 B) against L2 SH (54 B). SH has no node
-    group, so every row also gets the numpy error of the reflected radiance per texel (glossy_error, the
-    spheres' roughnesses), where SH is measured too."""
+    5 SGs (70 B) against fixed SG12 by NNLS (72 B), and CNN with 4 SGs (56 B) against L2 SH (54 B, shaded by the
+    SH variant of the node group); each baked, applied and evaluated against Cycles (RMSE and FLIP on glossy
+    pixels), plus the numpy error of the reflected radiance per texel (glossy_error, the spheres' roughnesses)."""
     import numpy as np
 
     from blender_addon.apply import apply_stage, remove_bake
@@ -440,9 +441,9 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0) -> list[dict]:
     from blender_addon.render import render_stage
     from blender_addon.scene_analysis import build_plan
     from shaders.lightfield_tiles import read_images
-    from shaders.sg_textures import read_sg_texture
+    from shaders.sg_textures import read_sg_texture, read_sh_texture
     from shaders.texel_maps import channels, read_texel_maps
-    from training.baselines import bytes_per_texel_sh_l2, eval_sh, fit_sh_l2
+    from training.baselines import eval_sh
     from training.sg_fit import glossy_error, reconstruct
     from training.train_stage import train_stage
 
@@ -453,7 +454,7 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0) -> list[dict]:
         return [round(glossy_error(prediction, images, normals, r), 4) for r in roughnesses]
 
     for name, sg_count, encoder in (("free SG5 (CNN)", 5, "cnn"), ("fixed SG12 (NNLS)", 5, "fixed_sg"),
-                                    ("free SG4 (CNN)", 4, "cnn")):
+                                    ("free SG4 (CNN)", 4, "cnn"), ("SH L2 (least squares)", 4, "sh_l2")):
         scene = build_demo_scene("spheres")
         plan = build_plan(scene, BakeSettings.from_preset("draft", lightfield_resolution=16, samples=32,
                                                           sg_count=sg_count, uniform_sg_count=True,
@@ -469,33 +470,29 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0) -> list[dict]:
         atlas, _ = read_texel_maps(out)
         texels, images = read_images(out / "lightfield")
         normals = channels(atlas, "Ng.X", 3)[texels[:, 0], texels[:, 1]].astype(np.float64)
-        axis, sharpness, amplitude, _ = read_sg_texture(out / "sg_lightfield.exr")
         r, c = texels[:, 0], texels[:, 1]
-        prediction = reconstruct(axis[r, c], sharpness[r, c], amplitude[r, c], images.shape[1])
+        if encoder == "sh_l2":
+            prediction = eval_sh(read_sh_texture(out / "sg_lightfield.exr")[0][r, c], images.shape[1])
+        else:
+            axis, sharpness, amplitude, _ = read_sg_texture(out / "sg_lightfield.exr")
+            prediction = reconstruct(axis[r, c], sharpness[r, c], amplitude[r, c], images.shape[1])
         rows.append({"encoder": name, "bytes_per_texel": trained.bytes_per_texel,
                      "glossy_rmse": round(_over_glossy(classes, "rmse"), 4),
                      "glossy_flip": round(_over_glossy(classes, "flip"), 4),
                      "flip": round(errors["flip"], 4), "reflected_error": reflected_errors(prediction, images, normals),
                      "fit_s": round(trained.seconds, 1)})
-        if encoder == "cnn" and sg_count == 4:
-            start = time.perf_counter()
-            sh = eval_sh(fit_sh_l2(images, normals), images.shape[1])
-            rows.append({"encoder": "SH L2 (least squares)", "bytes_per_texel": bytes_per_texel_sh_l2(),
-                         "glossy_rmse": None, "glossy_flip": None, "flip": None,
-                         "reflected_error": reflected_errors(sh, images, normals),
-                         "fit_s": round(time.perf_counter() - start, 1)})
     print(f"\nencoders at equal bytes (spheres, R = 16, 32 spp; CNN {budget_s:g} s); reflected radiance error at "
           f"roughness {', '.join(map(str, roughnesses))}")
     print(f"  {'encoder':<24} {'bytes':>5} {'glossy RMSE':>11} {'glossy FLIP':>11} {'FLIP':>7}  reflected error")
     for r in rows:
-        def fmt(v, width):
-            return f"{v:>{width}.4f}" if v is not None else f"{'-':>{width}}"
-        print(f"  {r['encoder']:<24} {r['bytes_per_texel']:>5} {fmt(r['glossy_rmse'], 11)} {fmt(r['glossy_flip'], 11)} "
-              f"{fmt(r['flip'], 7)}  {r['reflected_error']}")
+        print(f"  {r['encoder']:<24} {r['bytes_per_texel']:>5} {r['glossy_rmse']:>11.4f} {r['glossy_flip']:>11.4f} "
+              f"{r['flip']:>7.4f}  {r['reflected_error']}")
     free5, sg12, free4, sh = rows
-    print(f"  glossy RMSE fixed SG12 / free SG5: {sg12['glossy_rmse'] / free5['glossy_rmse']:.2f} (target >= 2); "
-          f"reflected error SG12 / SG5: {np.mean(sg12['reflected_error']) / np.mean(free5['reflected_error']):.2f}, "
-          f"SH L2 / SG4: {np.mean(sh['reflected_error']) / np.mean(free4['reflected_error']):.2f}")
+    for baseline, free in ((sg12, free5), (sh, free4)):
+        ratio = baseline["glossy_rmse"] / free["glossy_rmse"]
+        print(f"  {baseline['encoder']} / {free['encoder']}: glossy RMSE {ratio:.2f} "
+              f"(target >= 2), glossy FLIP {baseline['glossy_flip'] / free['glossy_flip']:.2f}, reflected error "
+              f"{np.mean(baseline['reflected_error']) / np.mean(free['reflected_error']):.2f}")
     return rows
 
 
@@ -607,12 +604,24 @@ def _plot_training(path: Path, curves: dict, rows: list, scene_name: str):
     plt.close(fig)
 
 
+def _read_bench_json(out: Path) -> dict:
+    import json
+
+    try:
+        return json.loads((out / "bench.json").read_text())
+    except (OSError, ValueError):
+        return {}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m headless.bench", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help="room only, Draft and Preview")
     p.add_argument("--out", type=Path, default=Path("bench_out"))
     p.add_argument("--sections", default=",".join(SECTIONS), help="comma-separated subset of " + ",".join(SECTIONS))
+    p.add_argument("--scenes", help="presets section: comma-separated demo scenes (default spheres,room,courtyard)")
+    p.add_argument("--presets", help="presets section: comma-separated presets (default all); rows of other "
+                   "scenes and presets already in OUT/bench.json are kept")
     p.add_argument("--hair-data", type=Path, default=Path("hair_data"),
                    help="hair pairs from headless/hair_dataset.py (the hair section's quality table)")
     ns = p.parse_args(argv)
@@ -642,24 +651,21 @@ def main(argv=None) -> int:
                                        if ns.quick else None)
     if "apply" in sections:
         results["apply"] = bench_apply(ns.out, (4, 16) if ns.quick else (4, 8, 16, 32))
+    earlier = _read_bench_json(ns.out)
+    preset_scenes = ns.scenes.split(",") if ns.scenes else ["spheres", "room"] if ns.quick else \
+        ["spheres", "room", "courtyard"]
+    preset_names = ns.presets.split(",") if ns.presets else ["draft"] if ns.quick else list(PRESETS)
+    if set(preset_scenes) - {"spheres", "room", "courtyard"} or set(preset_names) - set(PRESETS):
+        p.error(f"--scenes takes spheres, room, courtyard and --presets {', '.join(PRESETS)}")
     if "presets" in sections:
-        preset_scenes = ["spheres", "room"] if ns.quick else ["spheres", "room", "courtyard"]
-        results["presets"] = bench_presets(ns.out, preset_scenes, ["draft"] if ns.quick else list(PRESETS))
+        results["presets"] = bench_presets(ns.out, preset_scenes, preset_names, earlier.get("presets", ()))
     if "stability" in sections:
         results["stability"] = bench_stability(ns.out)
     if "hair" in sections:
         from headless.bench_hair import bench_hair
 
         results["hair"] = bench_hair(ns.out, ns.hair_data, ns.quick)
-    merged = {}  # sections run earlier into the same folder are kept
-    if (ns.out / "bench.json").is_file():
-        import json
-
-        try:
-            merged = json.loads((ns.out / "bench.json").read_text())
-        except ValueError:
-            merged = {}
-    write_json_atomic(ns.out / "bench.json", {**merged, **results})
+    write_json_atomic(ns.out / "bench.json", {**earlier, **results})  # sections run earlier are kept
     print(f"\nwritten: {ns.out / 'bench.json'}")
     return 0
 

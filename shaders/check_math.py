@@ -227,6 +227,44 @@ def check_irradiance(sharpness=SHARPNESS_GRID + (0.5, 2.0, 3.99, 4.0, 30.0), cos
                        note="approximation; error / lobe energy", worst_case=w.case)
 
 
+# --- GGX NDF as a sum of SGs (sg_math.GGX_NDF_TWO_LOBES) ---------------------------------------------
+_NDF_T = np.linspace(0.0, 12.0, 4000)  # t = tan(theta) / alpha; beyond 12 the shape is below 5e-5 of its peak
+
+
+def ggx_ndf_shape_error(lobes) -> float:
+    """Relative L2 error, weighted by area (t dt), of sum a exp(-b t^2) against GGX's shape (1 + t^2)^-2."""
+    shape = (1 + _NDF_T**2) ** -2
+    fitted = sum(a * np.exp(-b * _NDF_T**2) for a, b in lobes)
+    weight = np.sqrt(_NDF_T + 1e-3)
+    return float(np.sqrt(np.sum(((fitted - shape) * weight) ** 2) / np.sum((shape * weight) ** 2)))
+
+
+def fit_ggx_ndf_lobes():
+    """The two SGs of sg_math.GGX_NDF_TWO_LOBES: least squares of ggx_ndf_shape_error with the projected integral held
+    at 1 (a1/b1 + a2/b2 = 1, so a2 follows from the other three). Returns ((a1, b1), (a2, b2))."""
+    from scipy.optimize import least_squares
+
+    shape = (1 + _NDF_T**2) ** -2
+    weight = np.sqrt(_NDF_T + 1e-3)
+
+    def lobes(p):
+        a1, b1, b2 = p
+        return (a1, b1), ((1 - a1 / b1) * b2, b2)
+
+    def residual(p):
+        return (sum(a * np.exp(-b * _NDF_T**2) for a, b in lobes(p)) - shape) * weight
+
+    fit = least_squares(residual, [0.8, 1.5, 0.3], bounds=([0.0, 0.1, 0.01], [5.0, 20.0, 5.0]), xtol=1e-12,
+                        ftol=1e-12)
+    return lobes(fit.x)
+
+
+def check_ggx_ndf_lobes():
+    return CheckResult("GGX NDF as two SGs (shape, t dt)", ggx_ndf_shape_error(m.GGX_NDF_TWO_LOBES), len(_NDF_T),
+                       "t = tan(theta)/alpha in 0..12",
+                       note=f"one SG: {ggx_ndf_shape_error(m.GGX_NDF_PEAK_MATCHED):.3f}")
+
+
 # --- octahedral map -------------------------------------------------------------------------------
 def check_solid_angle_sum(resolutions=(1, 2, 3, 7, 8, 16, 33, 64, 128)):
     err = max(abs(octa.pixel_solid_angles(r).sum() - 4 * np.pi) / (4 * np.pi) for r in resolutions)
@@ -271,11 +309,12 @@ def all_checks(quick=False):
             check_sg_asg_convolution(sharpness=(1.0, 100.0, 1e4), roughness=(m.ROUGHNESS_MIN, 0.5), ndotv=(1.0, 0.01)),
             check_thesis_convolution(sharpness=(10.0,), roughness=(0.3,), ndotv=(1.0,)),
             *check_glossy(sharpness=(10.0, 1e3), roughness=(m.ROUGHNESS_MIN, 0.5), ndotv=(1.0, 0.1)),
-            check_irradiance(sharpness=(1e-4, 1.0, 4.0, 1e4), cosines=np.linspace(-1, 1, 5)),
+            check_irradiance(sharpness=(1e-4, 1.0, 4.0, 1e4), cosines=np.linspace(-1, 1, 5)), check_ggx_ndf_lobes(),
             check_solid_angle_sum(), check_solid_angle_pixels(resolutions=(4, 7)), check_octahedral_roundtrip(),
         ]
     return [check_sg_integral(), check_sg_inner_product(), check_thesis_inner_product(), check_sg_asg_convolution(),
-            check_thesis_convolution(), *check_glossy(), check_irradiance(), check_solid_angle_sum(),
+            check_thesis_convolution(), *check_glossy(), check_irradiance(), check_ggx_ndf_lobes(),
+            check_solid_angle_sum(),
             check_solid_angle_pixels(), check_octahedral_roundtrip()]
 
 

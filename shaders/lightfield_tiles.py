@@ -135,7 +135,8 @@ def tile_is_finished(kind_dir: Path, index: TileIndex, tile: Tile) -> bool:
     except Exception:
         return False
     return (str(header.get("sglf_plan_hash")) == index.plan_hash and str(header.get("sglf_tile_hash")) == tile.hash
-            and str(header.get("sglf_resolution")) == str(index.resolution))
+            and str(header.get("sglf_resolution")) == str(index.resolution)
+            and str(header.get("sglf_samples")) == str(index.samples))
 
 
 def read_images(kind_dir: Path, plan_hash: str | None = None):

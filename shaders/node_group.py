@@ -6,7 +6,7 @@ reference (`shade(NumpyOps(), ...)`) is the group's exact formula.
 
 Texture layout (one RGBA half-float image, `SGTextureLayout`): the lightmap atlas repeated as tiles in a
 grid; tile 'sg' j = (axis xyz, log-encoded sharpness), 'amp' j = (rgb amplitude, 0), 'irradiance' = (rgb, 1), 'iwev' j
-and 'iwev_amp' j likewise. Bilinear filtering is done by the nodes from four 'Closest' lookups: EEVEE samples
+and 'iwev_amp' j likewise; the SH baseline has 'sh' j = (rgb coefficient, 0) instead of 'sg' and 'amp'. Bilinear filtering is done by the nodes from four 'Closest' lookups: EEVEE samples
 'Linear' image textures through mipmaps, and coarse mip levels average neighbouring tiles (measured: colour
 garbage on the baked spheres). The four texel corners and weights are computed once per material and clamped
 inside the atlas, so a lookup never reaches into the next tile, in Cycles and EEVEE alike.
@@ -37,10 +37,12 @@ class SGTextureLayout:
     has_irradiance: bool = True
     atlas_size: tuple = (1, 1)  # (width, height) of one tile in texels
     tiles: list = field(default_factory=list)  # [(name, j)] in tile order
+    sh_count: int = 0  # SH L2 coefficient tiles 'sh' j instead of SGs (the benchmark's SH baseline)
 
     def __post_init__(self):
         if not self.tiles:
             self.tiles = [(kind, j) for j in range(self.sg_count) for kind in ("sg", "amp")]
+            self.tiles += [("sh", j) for j in range(self.sh_count)]
             if self.has_irradiance:
                 self.tiles.append(("irradiance", 0))
             self.tiles += [(kind, j) for j in range(self.iwev_count) for kind in ("iwev", "iwev_amp")]
@@ -57,8 +59,9 @@ class SGTextureLayout:
         return index % columns, rows - 1 - index // columns
 
     def to_dict(self):
-        return {"sg_count": self.sg_count, "iwev_count": self.iwev_count, "has_irradiance": self.has_irradiance,
-                "atlas_size": list(self.atlas_size), "tiles": [list(t) for t in self.tiles]}
+        return {"sg_count": self.sg_count, "sh_count": self.sh_count, "iwev_count": self.iwev_count,
+                "has_irradiance": self.has_irradiance, "atlas_size": list(self.atlas_size),
+                "tiles": [list(t) for t in self.tiles]}
 
 
 class NodeOps:
@@ -237,7 +240,7 @@ def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GRO
 
     result = shade(ops, lookup, inputs.outputs["Normal"], geometry.outputs["Incoming"], inputs.outputs["Roughness"],
                    inputs.outputs["F0"], inputs.outputs["Albedo"], layout.sg_count, layout.iwev_count,
-                   [tuple(e) for e in env_sgs], layout.has_irradiance)
+                   [tuple(e) for e in env_sgs], layout.has_irradiance, layout.sh_count)
     outputs = ops._node("NodeGroupOutput")
     outputs.location = (200 * (ops.count // COLUMN_NODES + 1), 0)
     for key, socket_name in (("total", "Total"), ("glossy", "Glossy"), ("diffuse", "Diffuse"),

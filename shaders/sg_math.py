@@ -26,6 +26,19 @@ AXIS_EPS = 1e-8  # axes shorter than this become +Z instead of NaN
 SMALL_X = 1e-6  # below this, (1 - exp(-2x)) / x uses its series
 TINY_SQUARED_LENGTH = 1e-30  # floor under |v|^2 before a square root (finite gradients in torch)
 
+# GGX NDF in the half-vector domain as a sum of SGs, (a, b) per lobe: sharpness 2 b / alpha^2, amplitude
+# a / (pi alpha^2). GGX_NDF_PEAK_MATCHED is the paper's single SG; GGX_NDF_TWO_LOBES a least-squares fit of GGX's
+# long-tailed shape (1 + t^2)^-2, t = tan(theta) / alpha, weighted by area, projected integral held at 1
+# (shaders/check_math.py fit_ggx_ndf_lobes): 4.5 % shape error against 28 %. Against quadrature of the exact GGX
+# BRDF (check_math.check_glossy, n.v >= 0.5, SG sharpness 30-1000) the single SG reflects 5-23 % too much light,
+# the two within 6 %. The bake uses the single SG all the same: measured end to end against Cycles (make bench,
+# presets on three scenes) the two lobes were no better (room, courtyard: within 0.002 FLIP) or worse (spheres'
+# glossy pixels: +3-7 %), because the fitted SGs keep only 90-99 % of the rendered energy (the log loss's bias,
+# training.sg_fit.energy_kept) and the single SG's excess hides that. The two lobes wait for an unbiased fit.
+GGX_NDF_PEAK_MATCHED = ((1.0, 1.0),)
+GGX_NDF_TWO_LOBES = ((0.8154517580, 1.7728163207), (0.1432483284, 0.2652625597))
+GGX_NDF_LOBES = GGX_NDF_PEAK_MATCHED  # what sg_glossy, the torch twin and the node group evaluate
+
 # Clamped-cosine Legendre coefficients c_l = 2*pi * integral_0^1 P_l(t) t dt (Funk-Hecke), l = 0..4.
 CLAMPED_COSINE_LEGENDRE = (math.pi, 2.0 * math.pi / 3.0, math.pi / 4.0, 0.0, -math.pi / 24.0)
 IRRADIANCE_SERIES_MAX_SHARPNESS = 4.0  # below: Legendre series; from here on: Hill's fit
@@ -126,13 +139,15 @@ def reflection_frame(normal, view):
     return z, x, y, ndotv
 
 
-def warp_ndf_to_asg(normal, view, roughness):
+def warp_ndf_to_asg(normal, view, roughness, lobe=(1.0, 1.0)):
     """The NDF SG warped to the reflected-direction domain (Paper I Eq. 18, Xu et al. 2013).
 
     A half-vector offset d moves the reflected direction by 2 d in the plane of incidence and by
     2 (n.v) d across it, so the lobe is sharper across the plane: sharpness_x = lam_d / (8 (n.v)^2)
-    on x = n cross z, sharpness_y = lam_d / 8 on y (in the plane)."""
+    on x = n cross z, sharpness_y = lam_d / 8 on y (in the plane). lobe (a, b) scales the NDF SG's
+    amplitude and sharpness: one term of GGX_NDF_LOBES ((1, 1): the single peak-matched SG)."""
     _, lam_d, mu_d = ndf_sg(normal, roughness)
+    lam_d, mu_d = lam_d * lobe[1], mu_d * lobe[0]
     z, x, y, ndotv = reflection_frame(normal, view)
     lam_d = np.broadcast_to(lam_d, ndotv.shape)
     return ASG(z, x, y, lam_d / (8 * ndotv**2), lam_d / 8, np.broadcast_to(mu_d, ndotv.shape))
@@ -197,10 +212,11 @@ def ggx_brdf_cos(light, view, normal, roughness, f0):
 def sg_glossy(axis, sharpness, amplitude, normal, view, roughness, f0):
     """Radiance reflected toward `view` by a GGX surface lit by one SG (Paper I section 6).
 
-    Convolution of the SG with the warped NDF, times Fresnel, Smith masking and
-    (n.l) / (4 (n.l)(n.v)), all evaluated at l = z (the reflected view direction)."""
-    asg = warp_ndf_to_asg(normal, view, roughness)
-    conv = sg_asg_convolve(axis, sharpness, amplitude, asg)
+    Convolution of the SG with the warped NDF (each lobe of GGX_NDF_LOBES), times Fresnel, Smith masking
+    and (n.l) / (4 (n.l)(n.v)), all evaluated at l = z (the reflected view direction)."""
+    asgs = [warp_ndf_to_asg(normal, view, roughness, lobe) for lobe in GGX_NDF_LOBES]
+    conv = sum(sg_asg_convolve(axis, sharpness, amplitude, asg) for asg in asgs)
+    asg = asgs[0]
     ndotv = np.clip(dot(normal, view), NDOTV_MIN, 1)
     ndotl = np.clip(dot(normal, asg.z), NDOTV_MIN, 1)
     h = safe_normalize(asg.z + view)

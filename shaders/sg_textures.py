@@ -2,6 +2,8 @@
 
   sg_lightfield.exr       N SGs per texel of the light field (RGB amplitudes)
   sg_env_visibility.exr   N SGs per texel of W_E (1 or 3 amplitude channels)
+The light-field file holds instead 9 L2 SH coefficients per texel (channels ``shJ.R/G/B``, metadata
+``encoder: sh_l2``) when the benchmark swaps in the SH baseline; read_sg_texture refuses such a file.
 Half-float, atlas-sized (row 0 = top, as texels.exr), channels ``sgJJ.axis.X/Y/Z``, ``sgJJ.sharpness``,
 ``sgJJ.amp.R/G/B`` (or ``sgJJ.amp.Y``). Stored amplitudes are divided by the metadata's
 ``amplitude_scale`` (shaders.sg_math.half_amplitude_scale) so HDR suns survive half floats. Gutters are
@@ -16,14 +18,15 @@ import numpy as np
 try:
     from .bake_plan import BakeInputError
     from .exr_io import read_exr, write_exr
-    from .sg_math import half_amplitude_scale, pack_sg_half, unpack_sg_half
+    from .sg_math import AMPLITUDE_MAX_HALF, half_amplitude_scale, pack_sg_half, unpack_sg_half
     from .texel_raster import dilate
 except ImportError:
     from shaders.bake_plan import BakeInputError
     from shaders.exr_io import read_exr, write_exr
-    from shaders.sg_math import half_amplitude_scale, pack_sg_half, unpack_sg_half
+    from shaders.sg_math import AMPLITUDE_MAX_HALF, half_amplitude_scale, pack_sg_half, unpack_sg_half
     from shaders.texel_raster import dilate
 
+SH_ENCODER = "sh_l2"
 SG_FILES = {"lightfield": "sg_lightfield.exr", "env_visibility": "sg_env_visibility.exr"}
 GUTTER_PASSES = 3
 
@@ -67,17 +70,55 @@ def write_sg_texture(path, texels, axis, sharpness, amplitude, atlas_shape, meta
     return meta
 
 
-def read_sg_texture(path, plan_hash: str | None = None):
-    """(axis (H, W, N, 3), sharpness (H, W, N), amplitude (H, W, N, C), metadata), sanitised and rescaled."""
-    data, _, meta = read_exr(path)
+def _checked_metadata(path, plan_hash: str | None, encoder_is_sh: bool) -> dict:
+    _, _, meta = read_exr(path)
     if plan_hash is not None and meta.get("plan_hash") != plan_hash:
         raise BakeInputError(f"{path}: made for another plan; run the train stage again")
+    if (meta.get("encoder") == SH_ENCODER) != encoder_is_sh:
+        raise BakeInputError(f"{path}: holds {meta.get('encoder', 'SG')} parameters, not "
+                             f"{'SH coefficients' if encoder_is_sh else 'SGs'}")
+    return meta
+
+
+def is_sh_texture(path) -> bool:
+    return read_exr(path)[2].get("encoder") == SH_ENCODER
+
+
+def read_sg_texture(path, plan_hash: str | None = None):
+    """(axis (H, W, N, 3), sharpness (H, W, N), amplitude (H, W, N, C), metadata), sanitised and rescaled."""
+    meta = _checked_metadata(path, plan_hash, encoder_is_sh=False)
     n, c = int(meta["sg_count"]), int(meta["amplitude_channels"])
     data, _, _ = read_exr(path, channels=channel_names(n, c), dtype=np.float16)
     h, w, _ = data.shape
     per = data.reshape(h, w, n, 4 + c)
     axis, sharpness, amplitude = unpack_sg_half(per[..., 0:3], per[..., 3], per[..., 4:], float(meta["amplitude_scale"]))
     return axis, sharpness, amplitude, meta
+
+
+def write_sh_texture(path, texels, coefficients, atlas_shape, metadata: dict) -> dict:
+    """Scatter per-texel SH L2 coefficients (T, 9, C) into a half EXR (divided by amplitude_scale like SG
+    amplitudes; coefficients may be negative); returns the metadata written."""
+    t, k, c = coefficients.shape
+    scale = half_amplitude_scale(np.abs(coefficients).max(initial=0.0))
+    stored = np.clip(np.nan_to_num(coefficients / scale), -AMPLITUDE_MAX_HALF, AMPLITUDE_MAX_HALF)
+    filled = scatter_dilated(atlas_shape, texels, stored.reshape(t, -1).astype(np.float32))
+    meta = {**metadata, "encoder": SH_ENCODER, "sh_count": k, "amplitude_channels": c, "amplitude_scale": repr(scale),
+            "packing": "per texel: SH L2 coefficients j = 0..8 (training.baselines.sh_basis order), per channel"}
+    write_exr(path, filled, precision="half", channels=sh_channel_names(k, c), metadata=meta)
+    return meta
+
+
+def read_sh_texture(path, plan_hash: str | None = None):
+    """(coefficients (H, W, 9, C), metadata), rescaled."""
+    meta = _checked_metadata(path, plan_hash, encoder_is_sh=True)
+    k, c = int(meta["sh_count"]), int(meta["amplitude_channels"])
+    data, _, _ = read_exr(path, channels=sh_channel_names(k, c))
+    h, w, _ = data.shape
+    return data.reshape(h, w, k, c) * np.float32(float(meta["amplitude_scale"])), meta
+
+
+def sh_channel_names(count: int, channels: int) -> list[str]:
+    return [f"sh{j}.{ch}" for j in range(count) for ch in (["R", "G", "B"] if channels == 3 else ["Y"])]
 
 
 def bytes_per_texel(sg_count: int, amplitude_channels: int) -> int:

@@ -52,14 +52,55 @@ def _parity_scene(group, width, height):
     return scene, node
 
 
+def _parity_worst(tmp_path, layout, cells, env_sgs, roughnesses, angles_deg) -> float:
+    """Worst relative difference between a Cycles render of the node group and its numpy reference, over the
+    parameter cells (h, w) of every tile and the given roughnesses and normal angles."""
+    h, w = next(iter(cells.values())).shape[:2]
+    # Every parameter cell spans 2 x 2 identical texels and each pixel centre hits the middle of a cell, so the
+    # node-side bilinear filter returns the cell's exact values despite Cycles' tiny pixel-filter jitter.
+    tiles = {key: np.repeat(np.repeat(value, 2, axis=0), 2, axis=1) for key, value in cells.items()}
+    path = write_exr(tmp_path / "packed.exr", pack_tiles(layout, tiles, (2 * h, 2 * w)), precision="half",
+                     channels=["R", "G", "B", "A"])
+    stored, _, _ = read_exr(path, channels=["R", "G", "B", "A"])
+    image = bpy.data.images.load(str(path))
+    image.colorspace_settings.name, image.alpha_mode = "Non-Color", "CHANNEL_PACKED"
+    group = build_node_group(image, layout, env_sgs, name=f"SG Lightfield parity {layout.sg_count} {layout.sh_count}")
+    scene, node = _parity_scene(group, w, h)
+    columns, rows = layout.grid
+
+    def lookup(kind, j):
+        col, row_from_bottom = layout.tile_offset(kind, j)
+        top = (rows - 1 - row_from_bottom) * 2 * h
+        texel = stored[top:top + 2 * h:2, col * 2 * w:(col + 1) * 2 * w:2].astype(np.float64)
+        return texel[..., :3], texel[..., 3]
+
+    worst = 0.0
+    for roughness in roughnesses:
+        for theta in angles_deg:
+            normal = (np.sin(np.radians(theta)), 0.0, np.cos(np.radians(theta)))
+            node.inputs["Normal"].default_value = normal
+            node.inputs["Roughness"].default_value = roughness
+            node.inputs["F0"].default_value = (0.04, 0.5, 1.0, 1.0)
+            node.inputs["Albedo"].default_value = (0.8, 0.5, 0.2, 1.0)
+            scene.render.filepath = str(tmp_path / "parity.exr")
+            with active_scene(scene), quiet_stdout():
+                bpy.ops.render.render(write_still=True, scene=scene.name)
+            rendered, _, _ = read_exr(tmp_path / "parity.exr", channels=["R", "G", "B"])
+            reference = shade(NumpyOps(), lookup, np.broadcast_to(normal, (h, w, 3)),
+                              np.broadcast_to((0.0, 0.0, 1.0), (h, w, 3)), np.full((h, w), roughness),
+                              np.broadcast_to((0.04, 0.5, 1.0), (h, w, 3)), np.broadcast_to((0.8, 0.5, 0.2), (h, w, 3)),
+                              layout.sg_count, layout.iwev_count, env_sgs, layout.has_irradiance,
+                              layout.sh_count)["total"]
+            worst = max(worst, float((np.abs(rendered - reference) / np.maximum(np.abs(reference), 1e-6)).max()))
+    return worst
+
+
 def test_node_group_matches_its_numpy_reference_in_cycles(tmp_path):
     """Over a grid that includes the extremes: sharpness 1e-4..1e4, amplitudes 0..1e4, roughness 0 (floored)
     to 1, grazing n.v, with the environment term (global env SGs x W_E from IWEV SGs, clipped to [0, 1]);
     the stored (half-float) parameters feed the numpy reference."""
     n, h, w = 3, 6, 6
     rng = np.random.default_rng(0)
-    # Every parameter cell spans 2 x 2 identical texels and each pixel centre hits the middle of a cell, so the
-    # node-side bilinear filter returns the cell's exact values despite Cycles' tiny pixel-filter jitter.
     layout = SGTextureLayout(n, iwev_count=1, has_irradiance=True, atlas_size=(2 * w, 2 * h))
     env_sgs = [((0.3, -0.2, 0.9), 4.0, (2.0, 1.5, 1.0)), ((-0.5, 0.5, 0.2), 40.0, (30.0, 20.0, 10.0))]
     cells = {}
@@ -73,40 +114,19 @@ def test_node_group_matches_its_numpy_reference_in_cycles(tmp_path):
     cells[("irradiance", 0)] = np.concatenate([rng.uniform(0, 3, (h, w, 3)), np.ones((h, w, 1))], -1)
     cells[("iwev", 0)] = np.concatenate([rng.normal(size=(h, w, 3)), rng.uniform(0, 1, (h, w, 1))], -1)
     cells[("iwev_amp", 0)] = np.concatenate([rng.uniform(0, 1.2, (h, w, 3)), np.zeros((h, w, 1))], -1)
-    tiles = {key: np.repeat(np.repeat(value, 2, axis=0), 2, axis=1) for key, value in cells.items()}
-    path = write_exr(tmp_path / "packed.exr", pack_tiles(layout, tiles, (2 * h, 2 * w)), precision="half",
-                     channels=["R", "G", "B", "A"])
-    stored, _, _ = read_exr(path, channels=["R", "G", "B", "A"])
-    image = bpy.data.images.load(str(path))
-    image.colorspace_settings.name, image.alpha_mode = "Non-Color", "CHANNEL_PACKED"
-    group = build_node_group(image, layout, env_sgs, name="SG Lightfield parity")
-    scene, node = _parity_scene(group, w, h)
-    columns, rows = layout.grid
+    assert _parity_worst(tmp_path, layout, cells, env_sgs, (0.0, 0.2, 0.6, 1.0), (0.0, 60.0, 89.0)) < 1e-3
 
-    def lookup(kind, j):
-        col, row_from_bottom = layout.tile_offset(kind, j)
-        top = (rows - 1 - row_from_bottom) * 2 * h
-        texel = stored[top:top + 2 * h:2, col * 2 * w:(col + 1) * 2 * w:2].astype(np.float64)
-        return texel[..., :3], texel[..., 3]
 
-    worst = 0.0
-    for roughness in (0.0, 0.2, 0.6, 1.0):
-        for theta in (0.0, 60.0, 89.0):
-            normal = (np.sin(np.radians(theta)), 0.0, np.cos(np.radians(theta)))
-            node.inputs["Normal"].default_value = normal
-            node.inputs["Roughness"].default_value = roughness
-            node.inputs["F0"].default_value = (0.04, 0.5, 1.0, 1.0)
-            node.inputs["Albedo"].default_value = (0.8, 0.5, 0.2, 1.0)
-            scene.render.filepath = str(tmp_path / "parity.exr")
-            with active_scene(scene), quiet_stdout():
-                bpy.ops.render.render(write_still=True, scene=scene.name)
-            rendered, _, _ = read_exr(tmp_path / "parity.exr", channels=["R", "G", "B"])
-            reference = shade(NumpyOps(), lookup, np.broadcast_to(normal, (h, w, 3)),
-                              np.broadcast_to((0.0, 0.0, 1.0), (h, w, 3)), np.full((h, w), roughness),
-                              np.broadcast_to((0.04, 0.5, 1.0), (h, w, 3)), np.broadcast_to((0.8, 0.5, 0.2), (h, w, 3)),
-                              n, 1, env_sgs)["total"]
-            worst = max(worst, float((np.abs(rendered - reference) / np.maximum(np.abs(reference), 1e-6)).max()))
-    assert worst < 1e-3
+def test_sh_node_group_matches_its_numpy_reference_in_cycles(tmp_path):
+    """The SH L2 baseline's variant of the group: signed coefficients up to 1e3, roughness 0 to 1, grazing."""
+    h, w = 4, 4
+    rng = np.random.default_rng(1)
+    layout = SGTextureLayout(0, has_irradiance=True, atlas_size=(2 * w, 2 * h), sh_count=9)
+    cells = {("sh", j): np.concatenate([rng.normal(size=(h, w, 3)) * (10.0 if j else 20.0), np.zeros((h, w, 1))], -1)
+             for j in range(9)}
+    cells[("sh", 0)][0, 0, :3] = 1e3
+    cells[("irradiance", 0)] = np.concatenate([rng.uniform(0, 3, (h, w, 3)), np.ones((h, w, 1))], -1)
+    assert _parity_worst(tmp_path, layout, cells, (), (0.0, 0.5, 1.0), (0.0, 89.0)) < 1e-3
 
 
 def _material_fingerprint(mat):
@@ -252,6 +272,20 @@ def test_eevee_renders_the_baked_spheres_in_the_evaluate_stage(tmp_path):
     remove_bake(scene)
 
 
+def _render_small(scene, path, camera_location) -> np.ndarray:
+    """A 32x18 Cycles render (2 spp) of the scene from a new camera looking along +Y; returns its RGB."""
+    with active_scene(scene), quiet_stdout():
+        scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 32, 18, 100
+        scene.cycles.samples = 2
+        scene.render.image_settings.file_format = "OPEN_EXR"
+        scene.render.filepath = str(path)
+        scene.camera = bpy.data.objects.new("small render", bpy.data.cameras.new("small render"))
+        scene.collection.objects.link(scene.camera)
+        scene.camera.location, scene.camera.rotation_euler = camera_location, (1.5708, 0, 0)
+        bpy.ops.render.render(write_still=True, scene=scene.name)
+    return read_exr(path, channels=["R", "G", "B"])[0]
+
+
 def test_each_material_gets_the_sg_count_its_roughness_needs(tmp_path):
     """A smooth and a rougher glossy material: the rougher one is fitted and shaded with fewer SGs (its texels'
     extra SGs are zero, its node group is smaller); --uniform-sg-count gives both the same."""
@@ -299,17 +333,39 @@ def test_each_material_gets_the_sg_count_its_roughness_needs(tmp_path):
     assert result["sg_counts"] == counts and result["node_groups"] == {
         smooth_group.name: len(smooth_group.nodes), rougher_group.name: len(rougher_group.nodes)}
     assert result["sg_evaluations_saved"] == pytest.approx(1 - sum(counts.values()) / (2 * counts["Smooth"]), abs=1e-3)
-    with active_scene(scene), quiet_stdout():  # both groups shade to finite colours
-        scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 32, 18, 100
-        scene.cycles.samples = 2
-        scene.render.image_settings.file_format = "OPEN_EXR"
-        scene.render.filepath = str(tmp_path / "baked.exr")
-        scene.camera = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
-        scene.collection.objects.link(scene.camera)
-        scene.camera.location, scene.camera.rotation_euler = (0.75, -5, 0), (1.5708, 0, 0)
-        bpy.ops.render.render(write_still=True, scene=scene.name)
-    rendered, _, _ = read_exr(tmp_path / "baked.exr", channels=["R", "G", "B"])
+    rendered = _render_small(scene, tmp_path / "baked.exr", (0.75, -5, 0))  # both groups shade to finite colours
     assert np.all(np.isfinite(rendered)) and rendered.max() > 0
     names = list(result["node_groups"])
     assert remove_bake(scene) == 2
     assert not any(name in bpy.data.node_groups for name in names)
+
+
+def test_sh_baseline_bakes_applies_and_shades_through_its_own_group(tmp_path):
+    """The benchmark's SH L2 encoder end to end: an SH texture, the SH variant of the group, a finite Cycles
+    render that sees the lamp, irradiance from the SH coefficients close to the rendered one (L2 SH holds
+    irradiance to a few per cent), and Remove SG Bake takes the group away."""
+    from shaders.sg_textures import is_sh_texture
+    from training.train_stage import train_stage
+
+    ball = mesh_object("SH ball", uv_sphere(0.6, 16, 8), material("SH metal", 0.5, metallic=1.0))
+    floor = mesh_object("SH floor", lambda bm: bmesh.ops.create_grid(bm, x_segments=1, y_segments=1, size=3.0),
+                        material("SH floor", 0.9))
+    floor.location = (0, 0, -0.6)
+    lamp = bpy.data.objects.new("SH lamp", bpy.data.lights.new("SH lamp", "AREA"))
+    lamp.data.energy, lamp.location = 200.0, (0.5, -1.0, 2.5)
+    scene = scene_with(ball, floor, lamp)
+    plan = build_plan(scene, BakeSettings.from_preset("draft", texel_density=6.0, lightfield_resolution=8, samples=8))
+    capture(scene, plan, tmp_path)
+    render_stage(scene, plan, tmp_path)
+    trained = train_stage(tmp_path, plan, encoder="sh_l2")
+    assert is_sh_texture(tmp_path / "sg_lightfield.exr") and trained.bytes_per_texel == 54
+    assert np.isfinite(trained.metrics["lightfield"]["rmse"])
+    info = apply_stage(scene, plan, tmp_path)
+    group = ball.material_slots[0].material.node_tree.nodes["Group"].node_tree
+    assert group.name == f"{GROUP_NAME} (SH L2)" and info["encoder"] == "sh_l2" and info["layout"]["sh_count"] == 9
+    assert info["irradiance_from_sgs_rel_error_median"] < 0.1
+    rendered = _render_small(scene, tmp_path / "baked.exr", (0, -5, 0))
+    assert np.all(np.isfinite(rendered)) and rendered[6:12, 13:19].mean() > 0.01  # the lit ball
+    group_name = group.name
+    remove_bake(scene)
+    assert group_name not in bpy.data.node_groups

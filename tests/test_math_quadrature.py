@@ -55,6 +55,28 @@ def test_glossy_lobe_accuracy(roughness, tol):
     assert r.max_rel_error < tol, r.worst_case
 
 
+def test_two_lobe_ndf_beats_the_single_sg_on_glossy_reflection(monkeypatch):
+    """GGX_NDF_TWO_LOBES against quadrature of the exact GGX BRDF, away from grazing: at most 0.6x the error of the
+    single SG the bake uses (measured when adopted: 0.03-0.13 against 0.13-0.27 of the peak)."""
+    grid = dict(sharpness=(30.0, 100.0, 1e3), ndotv=(1.0, 0.5), min_points=200_000)
+    for roughness in (0.2, 0.5):
+        (one,) = cm.check_glossy(roughness=(roughness,), **grid)
+        with monkeypatch.context() as patch:
+            patch.setattr(m, "GGX_NDF_LOBES", m.GGX_NDF_TWO_LOBES)
+            (two,) = cm.check_glossy(roughness=(roughness,), **grid)
+        assert two.max_rel_error < min(0.6 * one.max_rel_error, 0.14), (roughness, two.max_rel_error, one.max_rel_error)
+
+
+def test_ggx_ndf_two_lobes_are_the_fit_and_keep_the_energy():
+    """sg_math.GGX_NDF_TWO_LOBES is what check_math.fit_ggx_ndf_lobes returns; the projected NDF integrates to 1;
+    the two SGs follow GGX's shape far better than the paper's single peak-matched SG."""
+    fitted = cm.fit_ggx_ndf_lobes()
+    np.testing.assert_allclose(np.array(fitted), np.array(m.GGX_NDF_TWO_LOBES), rtol=1e-5)
+    for lobes in (m.GGX_NDF_TWO_LOBES, m.GGX_NDF_PEAK_MATCHED):
+        assert sum(a / b for a, b in lobes) == pytest.approx(1.0, abs=1e-9)
+    assert cm.ggx_ndf_shape_error(m.GGX_NDF_TWO_LOBES) < 0.05 < 0.25 < cm.ggx_ndf_shape_error(m.GGX_NDF_PEAK_MATCHED)
+
+
 def test_glossy_lobe_finite_at_roughness_one_and_grazing():
     (r,) = cm.check_glossy(sharpness=(1.0, 1e4), roughness=(1.0,), ndotv=(0.01,))
     assert np.isfinite(r.max_rel_error)
@@ -95,3 +117,31 @@ def test_octahedral_roundtrip_and_pixel_lookup():
     r = cm.check_octahedral_roundtrip()
     assert r.max_rel_error < 1e-12
     assert "BROKEN" not in r.note
+
+
+@pytest.mark.parametrize("roughness, tol", [(0.1, 1e-3), (0.3, 5e-3), (0.5, 0.03)])
+def test_sh_glossy_lobe_matches_quadrature_of_the_warped_ndf(roughness, tol):
+    """The SH baseline's shading (sg_shading.convolve_sh): exact for the isotropic SGs it takes for the warped NDF
+    lobes (band ratios, basis), and within the stated tolerance of the anisotropic warped lobes themselves for a
+    positive sky, normal to grazing incidence (measured when adopted: 0.01 %, 0.4 %, 2.6 % at roughness 0.1, 0.3,
+    0.5)."""
+    from shaders.quadrature import fibonacci_sphere
+    from shaders.sg_shading import NumpyOps, convolve_sh, warped_lobe
+    from training.baselines import sh_basis
+
+    d, w = fibonacci_sphere(400_000)
+    sun = np.array([0.3, 0.5, 0.8]) / np.linalg.norm([0.3, 0.5, 0.8])
+    sky = (1 + 3 * np.exp(2 * (d @ sun - 1)))[:, None] * np.array([1.0, 0.5, 0.2])
+    coefficients = (sh_basis(d) * w[:, None]).T @ sky  # its L2 projection: positive everywhere
+    radiance = sh_basis(d) @ coefficients
+    assert radiance.min() > 0
+    view = np.array([0.0, 0.0, 1.0])
+    for theta in (0.0, 30.0, 60.0, 80.0):
+        normal = np.array([np.sin(np.radians(theta)), 0.0, np.cos(np.radians(theta))])
+        lobe = warped_lobe(NumpyOps(), normal, view, np.float64(roughness))
+        got = convolve_sh(NumpyOps(), lobe, lambda kind, j: (coefficients[j], None))
+        isotropic = sum(mu * np.exp(2 * np.sqrt(lam_x * lam_y) * (d @ lobe["z"] - 1))  # integral mu pi / sqrt(..)
+                        for lam_x, lam_y, mu in lobe["lobes"])
+        np.testing.assert_allclose(got, (isotropic[:, None] * radiance * w[:, None]).sum(0), rtol=1e-3)
+        warped = sum(m.asg_eval(d, m.warp_ndf_to_asg(normal, view, roughness, l)) for l in m.GGX_NDF_LOBES)
+        np.testing.assert_allclose(got, (warped[:, None] * radiance * w[:, None]).sum(0), rtol=tol)

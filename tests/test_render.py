@@ -6,11 +6,11 @@ import pytest
 from mathutils import Matrix
 
 from blender_addon.capture import capture
-from blender_addon.render import render_stage
+from blender_addon.render import MIDPOINT_SAMPLES_FACTOR, render_stage
 from blender_addon.scene_analysis import build_plan, enable_nodes
 from shaders.bake_plan import BakeCancelled, BakeSettings
 from shaders.env_visibility import above_horizon_fraction
-from shaders.lightfield_tiles import read_images
+from shaders.lightfield_tiles import read_images, read_index
 from shaders.octahedral import direction_to_pixel, pixel_directions
 from shaders.texel_maps import channels, read_texel_maps
 from tests.scene_helpers import cube, material, mesh_object, scene_with, uv_sphere
@@ -90,6 +90,7 @@ def test_energy_inside_an_emitting_sphere_and_nothing_below_the_horizon(tmp_path
     fraction = above_horizon_fraction(normals, 16).reshape(-1, 16, 16)
     pairs, held_out = read_images(tmp_path / "midpoints", plan.stage_hash("render"))
     assert pairs.shape == (6, 4) and held_out.shape == (6, 16, 16, 3)
+    assert read_index(tmp_path / "midpoints").samples == 4 * MIDPOINT_SAMPLES_FACTOR  # a cleaner reference
     np.testing.assert_allclose(held_out[fraction[:6] == 1.0], radiance, rtol=2e-3)  # midpoints see the shell too
     full, none = fraction == 1.0, fraction == 0.0
     assert full.sum() > 0 and none.sum() > 0

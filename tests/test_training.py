@@ -44,8 +44,9 @@ def _config(**kw):
 @pytest.mark.parametrize("mode, lr", [("cnn", 3e-3), ("per_texel", 1e-2)])
 def test_synthetic_fit_recovers_the_known_sgs(mode, lr):
     data, (axis, sharpness, amplitude) = synthetic()
-    trainer = Trainer(data, _config(learning_rate=lr), mode=mode)
-    trainer.train()
+    trainer = Trainer(data, _config(learning_rate=lr, time_budget_s=600), mode=mode)  # the plateau ends it (~30 s)
+    state = trainer.train()
+    assert state.stopped_because == "plateau"
     a, s, m = trainer.parameters_numpy()
     for k in (10, 48, 90):
         order = np.argsort(-s[k])  # match lobes by sharpness (up to permutation)
@@ -141,6 +142,41 @@ def test_sg_texture_round_trip_keeps_hdr_and_dilates_gutters(tmp_path):
     assert m.max() < AMPLITUDE_MAX_HALF * float(meta["amplitude_scale"])
     np.testing.assert_allclose(m[0, 0], m[1, 1], rtol=0)  # the gutter corner copies its neighbour
     assert np.all(m[7, 9] == 0)  # beyond the dilation: empty
+
+
+def test_sh_texture_round_trip_keeps_signs_and_is_told_apart_from_sg_textures(tmp_path):
+    from shaders.bake_plan import BakeInputError
+    from shaders.sg_textures import is_sh_texture, read_sh_texture, write_sh_texture
+
+    texels = np.array([[1, 1], [1, 2], [2, 1]])
+    coefficients = np.random.default_rng(1).normal(size=(3, 9, 3))
+    coefficients[0, 0, 0] = 2e5  # above the half-float limit: scaled like SG amplitudes
+    write_sh_texture(tmp_path / "sh.exr", texels, coefficients, (8, 10), {"plan_hash": "abc"})
+    back, meta = read_sh_texture(tmp_path / "sh.exr", "abc")
+    assert is_sh_texture(tmp_path / "sh.exr") and int(meta["sh_count"]) == 9
+    np.testing.assert_allclose(back[texels[:, 0], texels[:, 1]], coefficients, rtol=2e-3, atol=2e-3 * 2e5 / 65504)
+    assert np.all(back[7, 9] == 0)  # beyond the dilation: no light
+    with pytest.raises(BakeInputError, match="not SGs"):
+        read_sg_texture(tmp_path / "sh.exr", "abc")
+    with pytest.raises(BakeInputError, match="another plan"):
+        read_sh_texture(tmp_path / "sh.exr", "xyz")
+
+
+def test_energy_kept_measures_the_fit_against_the_render_over_the_upper_hemisphere():
+    """Half the rendered energy in red and green and a third in blue: the median is a half; a black texel does not
+    count; directions below the horizon do not count."""
+    from shaders.env_visibility import above_horizon_fraction
+    from training.sg_fit import energy_kept, reconstruct
+
+    normals = np.tile([0.0, 0.0, 1.0], (6, 1))
+    axis = np.tile(np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]]), (6, 1, 1))
+    prediction = reconstruct(axis, np.full((6, 2), 5.0), np.full((6, 2, 3), 0.2), R)
+    target = prediction * np.array([2.0, 2.0, 3.0])
+    target[3] = 0.0  # a black texel
+    assert energy_kept(prediction, target, normals) == pytest.approx(0.5)
+    below = above_horizon_fraction(normals[:1], R).reshape(R, R) == 0
+    prediction[:, below] += 100.0  # below the horizon: not part of the light field
+    assert energy_kept(prediction, target, normals) == pytest.approx(0.5)
 
 
 def test_baselines_fit_what_they_can_represent():

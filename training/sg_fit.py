@@ -28,9 +28,11 @@ from shaders.octahedral import pixel_solid_angles as exact_solid_angles
 from shaders.sg_math import SHARPNESS_MAX, SHARPNESS_MIN
 from training.sg_torch import oct_decode, pixel_solid_angles, safe_normalize, sg_sum_eval
 
+LOG_SHARPNESS_MIN, LOG_SHARPNESS_MAX = math.log(SHARPNESS_MIN), math.log(SHARPNESS_MAX)
+
+
 def params_per_sg(channels: int = 3) -> int:
     return 4 + channels
-LOG_SHARPNESS_MIN, LOG_SHARPNESS_MAX = math.log(SHARPNESS_MIN), math.log(SHARPNESS_MAX)
 
 
 @dataclass
@@ -431,8 +433,27 @@ def unit_midpoint(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def midpoint_parameters(axis, sharpness, amplitude, a, b):
-    """SG parameters halfway between texels a and b, as bilinear filtering gives them at the midpoint."""
-    return unit_midpoint(axis[a], axis[b]), 0.5 * (sharpness[a] + sharpness[b]), 0.5 * (amplitude[a] + amplitude[b])
+    """SG parameters halfway between texels a and b, as the node group's bilinear filter gives them at the midpoint:
+    axes blended and renormalised, amplitudes blended, sharpness blended in the log encoding it is stored in
+    (sg_shading.encode_sharpness), i.e. the geometric mean."""
+    log_sharpness = np.log(np.maximum(sharpness, SHARPNESS_MIN))
+    return (unit_midpoint(axis[a], axis[b]), np.exp(0.5 * (log_sharpness[a] + log_sharpness[b])),
+            0.5 * (amplitude[a] + amplitude[b]))
+
+
+def energy_kept(prediction, target, normals) -> float:
+    """Median over lit texels and channels of the SG reconstruction's energy over the texel's upper hemisphere
+    divided by the rendered light field's. Below 1 is the log-L2 loss's bias: it fits E[log(1 + L)] of noisy
+    renders, which is below log(1 + E[L]) (Jensen), so sparse bright pixels (thin emitters) lose energy."""
+    from shaders.env_visibility import above_horizon_fraction
+
+    resolution = target.shape[1]
+    weight = (exact_solid_angles(resolution).reshape(1, -1) * above_horizon_fraction(normals, resolution))
+    weight = weight.reshape(-1, resolution, resolution, 1)
+    rendered = (np.asarray(target, np.float64) * weight).sum((1, 2))  # (T, C)
+    fitted = (np.asarray(prediction, np.float64) * weight).sum((1, 2))
+    lit = rendered > 0
+    return float(np.median(fitted[lit] / rendered[lit])) if lit.any() else 1.0
 
 
 def error_metrics(prediction: np.ndarray, target: np.ndarray, normals: np.ndarray) -> dict:

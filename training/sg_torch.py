@@ -16,6 +16,7 @@ from shaders.sg_math import (  # the one place the clamps are defined
     AMPLITUDE_MAX_HALF,
     AXIS_EPS,
     CLAMPED_COSINE_LEGENDRE,
+    GGX_NDF_LOBES,
     IRRADIANCE_SERIES_MAX_SHARPNESS,
     NDOTV_MIN,
     ROUGHNESS_MIN,
@@ -110,8 +111,9 @@ def reflection_frame(normal, view):
     return z, x, y, ndotv
 
 
-def warp_ndf_to_asg(normal, view, roughness):
+def warp_ndf_to_asg(normal, view, roughness, lobe=(1.0, 1.0)):
     _, lam_d, mu_d = ndf_sg(normal, roughness)
+    lam_d, mu_d = lam_d * lobe[1], mu_d * lobe[0]
     z, x, y, ndotv = reflection_frame(normal, view)
     lam_d = torch.broadcast_to(lam_d, ndotv.shape)
     return ASG(z, x, y, lam_d / (8 * ndotv**2), lam_d / 8, torch.broadcast_to(mu_d, ndotv.shape))
@@ -155,8 +157,9 @@ def ggx_ndf(ndoth, alpha):
 
 
 def sg_glossy(axis, sharpness, amplitude, normal, view, roughness, f0):
-    asg = warp_ndf_to_asg(normal, view, roughness)
-    conv = sg_asg_convolve(axis, sharpness, amplitude, asg)
+    asgs = [warp_ndf_to_asg(normal, view, roughness, lobe) for lobe in GGX_NDF_LOBES]
+    conv = sum(sg_asg_convolve(axis, sharpness, amplitude, asg) for asg in asgs)
+    asg = asgs[0]
     ndotv = torch.clamp(dot(normal, view), NDOTV_MIN, 1)
     ndotl = torch.clamp(dot(normal, asg.z), NDOTV_MIN, 1)
     h = safe_normalize(asg.z + view)

@@ -23,7 +23,7 @@ from shaders.bake_plan import BakeCancelled, BakeInputError, BakePlan, drive  # 
 from shaders.bake_report import save_png, update_report  # noqa: E402
 from shaders.env_visibility import above_horizon_fraction  # noqa: E402
 from shaders.lightfield_tiles import preview_mosaic, read_images  # noqa: E402
-from shaders.sg_textures import bytes_per_texel, sg_texture_path, write_sg_texture  # noqa: E402
+from shaders.sg_textures import bytes_per_texel, sg_texture_path, write_sg_texture, write_sh_texture  # noqa: E402
 from shaders.texel_maps import channels, read_texel_maps  # noqa: E402
 
 
@@ -86,13 +86,14 @@ def train_stage(out_dir, plan: BakePlan, *, progress=None, should_cancel=lambda:
 def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budget_s: float | None = None,
                 encoder: str = "cnn"):
     """The train stage as a generator: yields (fraction, message) after every epoch, returns TrainResult.
-    Closing it early saves the checkpoint, so the next run continues the same curve. encoder 'fixed_sg' swaps in
-    the fixed-axis SG12 baseline (the benchmark's comparison at equal bytes), written as the same SG textures."""
+    Closing it early saves the checkpoint, so the next run continues the same curve. The benchmark's baselines
+    at equal bytes: encoder 'fixed_sg' swaps in fixed-axis SG12 (written as the same SG textures), 'sh_l2' L2
+    SH by least squares (an SH texture that apply shades through the SH variant of the node group)."""
     import torch
 
-    from training.baselines import bytes_per_texel_fixed_sg, fit_fixed_sg
-    from training.sg_fit import (LightFieldData, TrainConfig, Trainer, error_metrics, midpoint_parameters,
-                                 pair_indices, reconstruct, unit_midpoint)
+    from training.baselines import bytes_per_texel_fixed_sg, bytes_per_texel_sh_l2, eval_sh, fit_fixed_sg, fit_sh_l2
+    from training.sg_fit import (LightFieldData, TrainConfig, Trainer, energy_kept, error_metrics,
+                                 midpoint_parameters, pair_indices, reconstruct, unit_midpoint)
 
     start = time.perf_counter()
     out_dir = Path(out_dir)
@@ -105,6 +106,10 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
     sg_count = plan.max_sg_count or settings.sg_count or 16
     budget = time_budget_s if time_budget_s is not None else settings.training_budget_s
     kinds = ["lightfield"] + (["env_visibility"] if plan.environment.iwev else [])
+    if encoder not in ("cnn", "fixed_sg", "sh_l2"):
+        raise ValueError(f"encoder {encoder!r} is not 'cnn', 'fixed_sg' or 'sh_l2'")
+    if encoder == "sh_l2" and plan.environment.iwev:
+        raise BakeInputError("the SH L2 baseline encodes light fields without environment visibility only")
     result = TrainResult()
     for k, kind in enumerate(kinds):
         texels, images = read_images(out_dir / kind, plan.stage_hash("render"))
@@ -117,6 +122,11 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
             amplitude = amps.astype(np.float32)
             epochs, stopped_because = 0, "least squares"
             texel_bytes = bytes_per_texel_fixed_sg(FIXED_SG_COUNT, images.shape[-1])  # axes and sharpness shared
+        elif encoder == "sh_l2":
+            yield (k + 0.5) / len(kinds), f"{kind}: L2 SH by least squares"
+            coefficients = fit_sh_l2(images, normals).astype(np.float32)
+            epochs, stopped_because = 0, "least squares"
+            texel_bytes = bytes_per_texel_sh_l2(images.shape[-1])
         else:
             counts = texel_lobe_counts(atlas, texel_info, texels, plan, sg_count)
             data = LightFieldData.from_numpy(images, normals, device=device,
@@ -143,8 +153,10 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
             axis, sharpness, amplitude = trainer.parameters_numpy()
             epochs, stopped_because = state.epoch, state.stopped_because
             texel_bytes = bytes_per_texel(sg_count, images.shape[-1])
-        prediction = reconstruct(axis, sharpness, amplitude, images.shape[1])
+        prediction = eval_sh(coefficients, images.shape[1]) if encoder == "sh_l2" else \
+            reconstruct(axis, sharpness, amplitude, images.shape[1])
         metrics = error_metrics(prediction, images, normals)
+        metrics["energy_kept"] = energy_kept(prediction, images, normals)  # the log loss's bias (sg_fit)
         picture = f"train_{kind}.png"  # rendered (left) | SG reconstruction (right), 16 texels each
         above = above_horizon_fraction(normals, images.shape[1]).reshape(prediction.shape[:3])[..., None]
         target_mosaic, predicted_mosaic = preview_mosaic(images), preview_mosaic(prediction * above)
@@ -156,11 +168,17 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
             # against the rendered, held-out midpoint light field.
             pairs, held_out = read_images(out_dir / "midpoints", plan.stage_hash("render"))
             a, b = pair_indices(texels, pairs)
-            prediction = reconstruct(*midpoint_parameters(axis, sharpness, amplitude, a, b), images.shape[1])
+            if encoder == "sh_l2":  # SH coefficients blend linearly
+                prediction = eval_sh(0.5 * (coefficients[a] + coefficients[b]), images.shape[1])
+            else:
+                prediction = reconstruct(*midpoint_parameters(axis, sharpness, amplitude, a, b), images.shape[1])
             metrics["midpoint"] = error_metrics(prediction, held_out, unit_midpoint(normals[a], normals[b]))
         path = sg_texture_path(out_dir, kind)
-        write_sg_texture(path, texels, axis, sharpness, amplitude, atlas.shape[:2],
-                         {"plan_hash": plan_hash, "kind": kind, "epochs": epochs, "encoder": encoder})
+        metadata = {"plan_hash": plan_hash, "kind": kind, "epochs": epochs, "encoder": encoder}
+        if encoder == "sh_l2":
+            write_sh_texture(path, texels, coefficients, atlas.shape[:2], metadata)
+        else:
+            write_sg_texture(path, texels, axis, sharpness, amplitude, atlas.shape[:2], metadata)
         result.files.append(path.name)
         result.metrics[kind] = {k2: (round(v, 6) if isinstance(v, float) else v) for k2, v in metrics.items()}
         result.epochs[kind] = epochs
@@ -173,7 +191,7 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
         result.metrics["environment"] = env["metrics"]
     result.seconds = time.perf_counter() - start
     update_report(out_dir, plan.stage_hash("capture"), timings_s={"train": result.seconds}, encoder=encoder,
-                  sg_count=amplitude.shape[1],
+                  sg_count=0 if encoder == "sh_l2" else amplitude.shape[1],
                   bytes_per_texel=result.bytes_per_texel,
                   train={"metrics": result.metrics, "epochs": result.epochs, "stopped_because": result.stopped_because,
                          "device": device, "files": result.files})
