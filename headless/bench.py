@@ -395,26 +395,36 @@ def bench_presets(out_root: Path, scenes, presets, earlier_rows=()) -> list[dict
                   f"(EEVEE {row['eevee_flip']}), by roughness {row['flip_by_roughness']}, reference noise floor "
                   f"{row['reference_noise_flip_by_roughness']}")
     if rows:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        figure, axes = plt.subplots(figsize=(6, 4))
         rows.sort(key=lambda r: (r["scene"], list(PRESETS).index(r["preset"])))
-        for name in sorted({r["scene"] for r in rows}):
-            mine = [r for r in rows if r["scene"] == name]
-            axes.plot([r["bake_s"] for r in mine], [r["flip"] for r in mine], "o-", label=name)
-            for r in mine:
-                axes.annotate(r["preset"], (r["bake_s"], r["flip"]), fontsize=7)
-        axes.set_xscale("log")
-        axes.set_xlabel("bake time (s, capture to apply)")
-        axes.set_ylabel("mean FLIP vs Cycles reference")
-        axes.legend()
-        figure.tight_layout()
-        figure.savefig(out_root / "pareto.png", dpi=120)
-        plt.close(figure)
+        _plot_pareto(out_root / "pareto.png", rows)
     return rows
+
+
+def _plot_pareto(path: Path, rows: list):
+    """Bake time against FLIP per scene: all pixels, and the glossy pixels of each roughness class."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = (("all pixels", lambda r: r["flip"]),
+              ("glossy, roughness < 0.3", lambda r: r["flip_by_roughness"].get("roughness < 0.3")),
+              ("glossy, 0.3 <= roughness < 0.6", lambda r: r["flip_by_roughness"].get("0.3 <= roughness < 0.6")))
+    figure, axes = plt.subplots(1, len(panels), figsize=(15, 4))
+    for ax, (title, value) in zip(axes, panels):
+        for name in sorted({r["scene"] for r in rows}):
+            mine = [r for r in rows if r["scene"] == name and value(r) is not None]
+            ax.plot([r["bake_s"] for r in mine], [value(r) for r in mine], "o-", label=name)
+            for r in mine:
+                ax.annotate(r["preset"], (r["bake_s"], value(r)), fontsize=7)
+        ax.set_xscale("log")
+        ax.set_xlabel("bake time (s, capture to apply)")
+        ax.set_ylabel("mean FLIP vs Cycles reference")
+        ax.set_title(title)
+        ax.legend()
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
 
 
 def _over_glossy(classes: dict, key: str = "flip") -> float:
