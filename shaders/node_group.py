@@ -6,10 +6,11 @@ reference (`shade(NumpyOps(), ...)`) is the group's exact formula.
 
 Texture layout (one RGBA half-float image, `SGTextureLayout`): the lightmap atlas repeated as tiles in a
 grid; tile 'sg' j = (axis xyz, log-encoded sharpness), 'amp' j = (rgb amplitude, 0), 'irradiance' = (rgb, 1), 'iwev' j
-and 'iwev_amp' j likewise; the SH baseline has 'sh' j = (rgb coefficient, 0) instead of 'sg' and 'amp'. Bilinear filtering is done by the nodes from four 'Closest' lookups: EEVEE samples
-'Linear' image textures through mipmaps, and coarse mip levels average neighbouring tiles (measured: colour
-garbage on the baked spheres). The four texel corners and weights are computed once per material and clamped
-inside the atlas, so a lookup never reaches into the next tile, in Cycles and EEVEE alike.
+and 'iwev_amp' j likewise; the SH baseline has 'sh' j = (rgb coefficient, 0) instead of 'sg' and 'amp'.
+Bilinear filtering is done by the nodes from four 'Closest' lookups: EEVEE samples 'Linear' image textures
+through mipmaps, and coarse mip levels average neighbouring tiles (measured: colour garbage on the baked spheres).
+The four texel corners and weights are computed once per material and clamped inside the atlas, so a lookup
+never reaches into the next tile, in Cycles and EEVEE alike.
 
 Versioned and idempotent: a group with the same name and version is updated in place (its users keep it);
 `GROUP_VERSION` changes whenever the formula or the interface changes.
