@@ -14,7 +14,6 @@ how far the SG irradiance is from it (report.json: apply.irradiance_from_sgs_rel
 from __future__ import annotations
 
 import json
-import math
 import time
 from pathlib import Path
 
@@ -28,7 +27,7 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.lightfield_tiles import read_images
     from ..shaders.node_group import GROUP_NAME, VERSION_KEY, SGTextureLayout, build_node_group
     from ..shaders.octahedral import pixel_directions, pixel_solid_angles
-    from ..shaders.sg_math import sg_irradiance
+    from ..shaders.sg_math import CLAMPED_COSINE_LEGENDRE, sg_irradiance
     from ..shaders.sg_shading import SH_L2_BAND, NumpyOps, encode_sharpness, sh_l2_basis
     from ..shaders.sg_textures import (is_sh_texture, pack_tiles, read_sg_texture, read_sh_texture, scatter_dilated,
                                    sg_texture_path)
@@ -44,7 +43,7 @@ except ImportError:  # bpy as a module with the repository on sys.path
     from shaders.lightfield_tiles import read_images
     from shaders.node_group import GROUP_NAME, VERSION_KEY, SGTextureLayout, build_node_group
     from shaders.octahedral import pixel_directions, pixel_solid_angles
-    from shaders.sg_math import sg_irradiance
+    from shaders.sg_math import CLAMPED_COSINE_LEGENDRE, sg_irradiance
     from shaders.sg_shading import SH_L2_BAND, NumpyOps, encode_sharpness, sh_l2_basis
     from shaders.sg_textures import (is_sh_texture, pack_tiles, read_sg_texture, read_sh_texture, scatter_dilated,
                                    sg_texture_path)
@@ -88,9 +87,9 @@ def build_packed_image(out_dir: Path, plan) -> tuple[SGTextureLayout, Path, dict
             raise BakeInputError(f"{out_dir}: env_occluded and lightfield texels differ; render again")
         irradiance = irradiance + irradiance_from_lightfields(sky, shading)
     r, c = texels[:, 0], texels[:, 1]
-    if sh:  # Funk-Hecke with the clamped cosine: bands scaled by pi, 2 pi / 3, pi / 4
+    if sh:  # Funk-Hecke with the clamped cosine: band l scaled by its Legendre coefficient
         basis = np.stack(np.broadcast_arrays(*sh_l2_basis(NumpyOps(), shading)), -1)  # (T, 9)
-        cosine_bands = np.array([(math.pi, 2 * math.pi / 3, math.pi / 4)[band] for band in SH_L2_BAND])
+        cosine_bands = np.array([CLAMPED_COSINE_LEGENDRE[band] for band in SH_L2_BAND])
         from_encoding = np.einsum("tk,tkc->tc", basis * cosine_bands, coefficients[r, c].astype(np.float64))
     else:
         from_encoding = sg_irradiance(axis[r, c].astype(np.float64), sharpness[r, c].astype(np.float64),

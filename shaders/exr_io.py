@@ -89,6 +89,25 @@ def read_exr(path, *, channels: list[str] | None = None, dtype=np.float32):
     return data, names, metadata
 
 
+def read_exr_metadata(path) -> dict[str, str]:
+    """The metadata written by write_exr (keys without the ``sglf_`` prefix), from the header alone."""
+    import OpenEXR
+
+    path = Path(path)
+    if not path.is_file():
+        raise ExrError(f"{path}: EXR file not found")
+    try:
+        if not OpenEXR.isOpenExrFile(str(path)):
+            raise ExrError(f"{path}: not an OpenEXR file (corrupt or wrong format)")
+        with OpenEXR.File(str(path), header_only=True) as exr:
+            header = dict(exr.header())
+    except ExrError:
+        raise
+    except Exception as exc:
+        raise ExrError(f"{path}: cannot read EXR header ({exc})") from exc
+    return {k[len("sglf_"):]: str(v) for k, v in header.items() if k.startswith("sglf_")}
+
+
 def _ordered_names(names):
     names = list(names)
     rgba = [c for c in "RGBA" if c in names]

@@ -20,10 +20,10 @@ import numpy as np
 
 try:
     from .bake_plan import BakeInputError, write_json_atomic
-    from .exr_io import ExrError, read_exr
+    from .exr_io import ExrError, read_exr, read_exr_metadata
 except ImportError:
     from shaders.bake_plan import BakeInputError, write_json_atomic
-    from shaders.exr_io import ExrError, read_exr
+    from shaders.exr_io import ExrError, read_exr, read_exr_metadata
 
 INDEX_NAME = "index.json"
 DEFAULT_TILE_MEGAPIXELS = 4.0  # Cycles keeps a few float passes per pixel: ~100 MB per tile at 4 MP
@@ -124,19 +124,12 @@ def read_index(kind_dir: Path, plan_hash: str | None = None) -> TileIndex:
 
 
 def tile_is_finished(kind_dir: Path, index: TileIndex, tile: Tile) -> bool:
-    path = Path(kind_dir) / tile.file
-    if not path.is_file():
-        return False
     try:
-        import OpenEXR
-
-        with OpenEXR.File(str(path), header_only=True) as exr:
-            header = dict(exr.header())
-    except Exception:
+        meta = read_exr_metadata(Path(kind_dir) / tile.file)
+    except ExrError:  # missing, truncated or not an EXR: render it (again)
         return False
-    return (str(header.get("sglf_plan_hash")) == index.plan_hash and str(header.get("sglf_tile_hash")) == tile.hash
-            and str(header.get("sglf_resolution")) == str(index.resolution)
-            and str(header.get("sglf_samples")) == str(index.samples))
+    return (meta.get("plan_hash") == index.plan_hash and meta.get("tile_hash") == tile.hash
+            and meta.get("resolution") == str(index.resolution) and meta.get("samples") == str(index.samples))
 
 
 def read_images(kind_dir: Path, plan_hash: str | None = None):

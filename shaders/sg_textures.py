@@ -17,12 +17,12 @@ import numpy as np
 
 try:
     from .bake_plan import BakeInputError
-    from .exr_io import read_exr, write_exr
+    from .exr_io import read_exr, read_exr_metadata, write_exr
     from .sg_math import AMPLITUDE_MAX_HALF, half_amplitude_scale, pack_sg_half, unpack_sg_half
     from .texel_raster import dilate
 except ImportError:
     from shaders.bake_plan import BakeInputError
-    from shaders.exr_io import read_exr, write_exr
+    from shaders.exr_io import read_exr, read_exr_metadata, write_exr
     from shaders.sg_math import AMPLITUDE_MAX_HALF, half_amplitude_scale, pack_sg_half, unpack_sg_half
     from shaders.texel_raster import dilate
 
@@ -71,7 +71,7 @@ def write_sg_texture(path, texels, axis, sharpness, amplitude, atlas_shape, meta
 
 
 def _checked_metadata(path, plan_hash: str | None, encoder_is_sh: bool) -> dict:
-    _, _, meta = read_exr(path)
+    meta = read_exr_metadata(path)
     if plan_hash is not None and meta.get("plan_hash") != plan_hash:
         raise BakeInputError(f"{path}: made for another plan; run the train stage again")
     if (meta.get("encoder") == SH_ENCODER) != encoder_is_sh:
@@ -81,7 +81,7 @@ def _checked_metadata(path, plan_hash: str | None, encoder_is_sh: bool) -> dict:
 
 
 def is_sh_texture(path) -> bool:
-    return read_exr(path)[2].get("encoder") == SH_ENCODER
+    return read_exr_metadata(path).get("encoder") == SH_ENCODER
 
 
 def read_sg_texture(path, plan_hash: str | None = None):
