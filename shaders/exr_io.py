@@ -5,6 +5,7 @@ up to four channels and ``c000``, ``c001``, ... beyond. Every error names the fi
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -63,49 +64,49 @@ def write_exr(path, array, *, precision: str = "half", channels: list[str] | Non
     return path
 
 
-def read_exr(path, *, channels: list[str] | None = None, dtype=np.float32):
-    """Read an EXR into (H, W, C) `dtype` plus (channel names, metadata written by write_exr)."""
+@contextmanager
+def _opened(path, **options):
+    """An OpenEXR.File of `path`; a missing, foreign or unreadable file raises ExrError naming it, also when the
+    error comes from reading inside the block."""
     import OpenEXR
 
-    path = Path(path)
     if not path.is_file():
         raise ExrError(f"{path}: EXR file not found")
     try:
         if not OpenEXR.isOpenExrFile(str(path)):
             raise ExrError(f"{path}: not an OpenEXR file (corrupt or wrong format)")
-        with OpenEXR.File(str(path), separate_channels=True) as exr:
-            found = exr.channels()
-            header = dict(exr.header())  # the live header empties when the file closes
-            names = channels or _ordered_names(found.keys())
-            missing = [n for n in names if n not in found]
-            if missing:
-                raise ExrError(f"{path}: missing channels {missing}; file has {sorted(found)}")
-            data = np.stack([np.asarray(found[n].pixels, dtype=dtype) for n in names], axis=-1)
+        with OpenEXR.File(str(path), **options) as exr:
+            yield exr
     except ExrError:
         raise
     except Exception as exc:  # OpenEXR raises plain RuntimeError/ValueError for truncated data
         raise ExrError(f"{path}: cannot read EXR ({exc})") from exc
-    metadata = {k[len("sglf_"):]: str(v) for k, v in header.items() if k.startswith("sglf_")}
-    return data, names, metadata
+
+
+def _metadata(header) -> dict[str, str]:
+    return {k[len("sglf_"):]: str(v) for k, v in header.items() if k.startswith("sglf_")}
+
+
+def read_exr(path, *, channels: list[str] | None = None, dtype=np.float32):
+    """Read an EXR into (H, W, C) `dtype` plus (channel names, metadata written by write_exr)."""
+    path = Path(path)
+    with _opened(path, separate_channels=True) as exr:
+        found = exr.channels()
+        header = dict(exr.header())  # the live header empties when the file closes
+        names = channels or _ordered_names(found.keys())
+        missing = [n for n in names if n not in found]
+        if missing:
+            raise ExrError(f"{path}: missing channels {missing}; file has {sorted(found)}")
+        data = np.stack([np.asarray(found[n].pixels, dtype=dtype) for n in names], axis=-1)
+    return data, names, _metadata(header)
 
 
 def read_exr_metadata(path) -> dict[str, str]:
     """The metadata written by write_exr (keys without the ``sglf_`` prefix), from the header alone."""
-    import OpenEXR
-
     path = Path(path)
-    if not path.is_file():
-        raise ExrError(f"{path}: EXR file not found")
-    try:
-        if not OpenEXR.isOpenExrFile(str(path)):
-            raise ExrError(f"{path}: not an OpenEXR file (corrupt or wrong format)")
-        with OpenEXR.File(str(path), header_only=True) as exr:
-            header = dict(exr.header())
-    except ExrError:
-        raise
-    except Exception as exc:
-        raise ExrError(f"{path}: cannot read EXR header ({exc})") from exc
-    return {k[len("sglf_"):]: str(v) for k, v in header.items() if k.startswith("sglf_")}
+    with _opened(path, header_only=True) as exr:
+        header = dict(exr.header())
+    return _metadata(header)
 
 
 def _ordered_names(names):
