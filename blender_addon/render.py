@@ -35,6 +35,7 @@ from pathlib import Path
 
 import bpy
 import numpy as np
+from mathutils import Vector
 
 try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.bake_plan import BakeInputError, drive
@@ -44,9 +45,11 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.lightfield_tiles import (DEFAULT_TILE_MEGAPIXELS, TileIndex, blocks_to_images, images_to_blocks,
                                             parse_share, plan_tiles, preview_mosaic, read_preview_images,
                                             tile_is_finished, write_index)
-    from ..shaders.texel_maps import channels, read_texel_maps
+    from ..shaders.texel_maps import adjacent_texel_pairs, channels, read_texel_maps
+    from .capture import scene_bvh
     from .scene_analysis import active_scene, remove_datablocks
 except ImportError:  # bpy as a module with the repository on sys.path
+    from blender_addon.capture import scene_bvh
     from blender_addon.scene_analysis import active_scene, remove_datablocks
     from shaders.bake_plan import BakeInputError, drive
     from shaders.bake_report import save_png, update_report
@@ -55,7 +58,7 @@ except ImportError:  # bpy as a module with the repository on sys.path
     from shaders.lightfield_tiles import (DEFAULT_TILE_MEGAPIXELS, TileIndex, blocks_to_images, images_to_blocks,
                                           parse_share, plan_tiles, preview_mosaic, read_preview_images,
                                           tile_is_finished, write_index)
-    from shaders.texel_maps import channels, read_texel_maps
+    from shaders.texel_maps import adjacent_texel_pairs, channels, read_texel_maps
 
 CAMERA_SHADER = Path(__file__).resolve().parent.parent / "shaders" / "lightfield_camera.osl"
 LAMP_MIN_PIXEL_FRACTION = 0.5  # of an octahedral pixel's angular radius (about 2/R radians)
@@ -334,28 +337,31 @@ def _texel_inputs(atlas, texels):
 
 
 def midpoint_pairs(atlas: np.ndarray, count: int, seed: int = MIDPOINT_SEED) -> np.ndarray:
-    """(M, 4) [row, col, row2, col2]: random horizontally or vertically adjacent valid texels of one object."""
-    valid = channels(atlas, "valid") > 0
-    object_id = channels(atlas, "object_id")
-    pairs = []
-    for dr, dc in ((0, 1), (1, 0)):
-        a = valid[:valid.shape[0] - dr, :valid.shape[1] - dc]
-        b = valid[dr:, dc:]
-        same = object_id[:object_id.shape[0] - dr, :object_id.shape[1] - dc] == object_id[dr:, dc:]
-        r, c = np.nonzero(a & b & same)
-        pairs.append(np.stack([r, c, r + dr, c + dc], axis=-1))
-    pairs = np.concatenate(pairs)
+    """(M, 4) [row, col, row2, col2]: `count` random adjacent valid texels of one object (adjacent_texel_pairs)."""
+    pairs = adjacent_texel_pairs(atlas)
     rng = np.random.default_rng(seed)
     pick = rng.choice(len(pairs), size=min(count, len(pairs)), replace=False) if len(pairs) else []
     return pairs[np.sort(pick)] if len(pairs) else np.zeros((0, 4), np.int64)
 
 
-def _midpoint_inputs(atlas, pairs):
+def _midpoint_inputs(scene, atlas, pairs):
+    """Camera inputs of the held-out midpoints: the surface point halfway between two adjacent texels, their blended
+    normal and the larger ray offset. The chord midpoint of two texels on a curved surface lies inside it (1.5 cm
+    on the demo spheres at Draft, 70 times the ray offset: every ray started inside the sphere and the midpoints
+    rendered black), so it is moved onto the surface by a ray cast along the blended normal."""
     p1, n1, o1 = _texel_inputs(atlas, pairs[:, :2])
     p2, n2, o2 = _texel_inputs(atlas, pairs[:, 2:])
     normal = n1 + n2
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
-    return 0.5 * (p1 + p2), normal, np.maximum(o1, o2)
+    position = 0.5 * (p1 + p2)
+    reach = np.linalg.norm(p1 - p2, axis=1)  # far above the sagitta of any surface the two texels lie on
+    with active_scene(scene):
+        bvh, _ = scene_bvh(scene, bpy.context.evaluated_depsgraph_get())
+    for i in range(len(position)) if bvh is not None else ():
+        hit, _, _, _ = bvh.ray_cast(Vector(position[i] + reach[i] * normal[i]), Vector(-normal[i]), 2.0 * reach[i])
+        if hit is not None:
+            position[i] = hit
+    return position, normal, np.maximum(o1, o2)
 
 
 def _mono(images):
@@ -384,14 +390,15 @@ def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: i
     jobs = [("lightfield", texels, _texel_inputs(atlas, texels), 3)]
     if midpoints > 0:
         pairs = midpoint_pairs(atlas, midpoints)
-        jobs.append(("midpoints", pairs, _midpoint_inputs(atlas, pairs), 3))
+        jobs.append(("midpoints", pairs, _midpoint_inputs(scene, atlas, pairs), 3))
     iwev_channels = plan.environment.iwev_channels if plan.environment.iwev else 0
     if iwev_channels:
         jobs.append(("env_visibility", texels, _texel_inputs(atlas, texels), iwev_channels))
     work = []  # (kind, kind_dir, index, tile, inputs)
     for kind, ids, inputs, channel_count in jobs:
         kind_dir = out_dir / kind
-        tiles = plan_tiles(ids, resolution, max_megapixels=max_tile_megapixels)
+        tiles = plan_tiles(ids, resolution, max_megapixels=max_tile_megapixels,
+                           inputs=np.concatenate(inputs[:2], axis=1) if kind == "midpoints" else None)
         index = TileIndex(kind, plan_hash, resolution, pass_samples(kind, settings.samples), channel_count, tiles)
         write_index(kind_dir, index)
         mine = parse_share(share, len(tiles))

@@ -69,14 +69,20 @@ def tile_grid(count: int) -> tuple[int, int]:
 
 
 def plan_tiles(texels: np.ndarray, resolution: int, *, max_megapixels: float = DEFAULT_TILE_MEGAPIXELS,
-               prefix: str = "tile") -> list[Tile]:
-    """Split texels (T, 2) into tiles of at most `max_megapixels` of render pixels each."""
+               prefix: str = "tile", inputs: np.ndarray | None = None) -> list[Tile]:
+    """Split texels (T, 2) into tiles of at most `max_megapixels` of render pixels each. `inputs` (T, ...): per-texel
+    camera inputs not derived from the texel maps alone (the held-out midpoints' surface points); each tile's hash
+    then covers its share of them, so a tile rendered from other inputs is not taken as finished."""
     per_tile = max(1, int(max_megapixels * 1e6) // (resolution * resolution))
     tiles = []
     for index, start in enumerate(range(0, len(texels), per_tile)):
         chunk = np.asarray(texels[start:start + per_tile]).tolist()
         columns, rows = tile_grid(len(chunk))
-        tiles.append(Tile(index, f"{prefix}_{index:04d}.exr", columns, rows, chunk))
+        tile = Tile(index, f"{prefix}_{index:04d}.exr", columns, rows, chunk)
+        if inputs is not None:
+            digest = hashlib.sha256(np.ascontiguousarray(inputs[start:start + per_tile], np.float32).tobytes())
+            tile.hash = hashlib.sha256((tile.hash + digest.hexdigest()).encode()).hexdigest()[:16]
+        tiles.append(tile)
     return tiles
 
 

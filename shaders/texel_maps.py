@@ -56,6 +56,21 @@ def read_texel_maps(out_dir, plan_hash: str | None = None):
     return atlas, info
 
 
+def adjacent_texel_pairs(atlas: np.ndarray) -> np.ndarray:
+    """(M, 4) [row, col, row2, col2]: every horizontally or vertically adjacent pair of valid texels of one object,
+    the pairs a bilinear lookup blends (the held-out midpoints and the interpolation term of training use them)."""
+    valid = channels(atlas, "valid") > 0
+    object_id = channels(atlas, "object_id")
+    pairs = []
+    for dr, dc in ((0, 1), (1, 0)):
+        a = valid[:valid.shape[0] - dr, :valid.shape[1] - dc]
+        b = valid[dr:, dc:]
+        same = object_id[:object_id.shape[0] - dr, :object_id.shape[1] - dc] == object_id[dr:, dc:]
+        r, c = np.nonzero(a & b & same)
+        pairs.append(np.stack([r, c, r + dr, c + dc], axis=-1))
+    return np.concatenate(pairs).astype(np.int64)
+
+
 def save_capture_pictures(out_dir, atlas: np.ndarray) -> list[Path]:
     """Position, normal and validity pictures of the atlas (nearest-neighbour enlarged PNGs)."""
     out_dir = Path(out_dir)
