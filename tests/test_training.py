@@ -6,7 +6,8 @@ import torch
 from shaders.octahedral import oct_decode
 from shaders.sg_math import AMPLITUDE_MAX_HALF, SHARPNESS_MAX, SHARPNESS_MIN
 from shaders.sg_textures import read_sg_texture, write_sg_texture
-from training.sg_fit import (LightFieldData, TrainConfig, Trainer, constrain, error_metrics, reconstruct)
+from training.sg_fit import (LightFieldData, TrainConfig, Trainer, blend_parameters, constrain, error_metrics,
+                             midpoint_parameters, reconstruct)
 
 R = 16
 
@@ -57,6 +58,63 @@ def test_synthetic_fit_recovers_the_known_sgs(mode, lr):
         np.testing.assert_allclose(energy, true_energy, rtol=0.15)
     metrics = error_metrics(reconstruct(a, s, m, R), data.images.numpy(), data.normals.numpy())
     assert metrics["rmse_log"] < 0.05
+
+
+def crossing_lobes(t):
+    """Two equal lobes circling the zenith in opposite senses, crossing twice along the row: per-texel fits are free
+    to swap which SG slot follows which lobe between neighbours."""
+    axis = np.stack([np.stack([np.cos(2 * t), np.sin(2 * t), 0.5 + 0 * t], -1),
+                     np.stack([np.cos(2.5 - 2 * t), np.sin(2.5 - 2 * t), 0.5 + 0 * t], -1)], 1)
+    axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
+    return axis, np.full((len(t), 2), 30.0), np.full((len(t), 2, 3), 3.0)
+
+
+def test_blended_parameters_in_torch_are_the_numpy_midpoint_parameters():
+    rng = np.random.default_rng(3)
+    axis = rng.normal(size=(6, 4, 3))
+    axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
+    axis[5] = -axis[4]  # opposite axes: the blend has no direction, both fall back alike
+    sharpness = np.exp(rng.uniform(np.log(SHARPNESS_MIN), np.log(SHARPNESS_MAX), size=(6, 4)))
+    amplitude = rng.uniform(0, 5, size=(6, 4, 3))
+    a, b = np.array([0, 1, 2, 4]), np.array([1, 3, 2, 5])
+    expected = midpoint_parameters(axis, sharpness, amplitude, a, b)
+    torch_params = [torch.from_numpy(x) for x in (axis, sharpness, amplitude)]
+    got = blend_parameters(tuple(x[a] for x in torch_params), tuple(x[b] for x in torch_params))
+    for g, e in zip(got, expected):
+        np.testing.assert_allclose(g.numpy(), e, rtol=1e-12, atol=1e-12)
+
+
+def test_the_interpolation_term_makes_per_texel_fits_interpolate():
+    """Per-texel GD to its plateau with and without the term, scored on known midpoints (never trained on).
+    Measured: midpoint RMSE 0.096 without, 0.069 with."""
+    texels = 32
+    t = np.linspace(0, 1, texels)
+    images = render_sgs(*crossing_lobes(t)).astype(np.float32)
+    midpoints = render_sgs(*crossing_lobes(0.5 * (t[:-1] + t[1:]))).astype(np.float32)
+    normals = np.tile([0.0, 0.0, 1.0], (texels, 1))
+    data = LightFieldData.from_numpy(images, normals)
+    pairs = torch.stack([torch.arange(texels - 1), torch.arange(1, texels)], 1)
+    errors = {}
+    for weight in (0.0, 1.0):
+        trainer = Trainer(data, _config(sg_count=4, learning_rate=1e-2, batch_texels=texels, time_budget_s=600,
+                                        interpolation_weight=weight), mode="per_texel", neighbours=pairs)
+        assert trainer.train().stopped_because == "plateau"
+        a, s, m = trainer.parameters_numpy()
+        blended = midpoint_parameters(a, s, m, np.arange(texels - 1), np.arange(1, texels))
+        errors[weight] = error_metrics(reconstruct(*blended, R), midpoints, normals[:-1])["rmse"]
+    assert errors[1.0] < 0.85 * errors[0.0], errors
+
+
+def test_the_interpolation_term_needs_neighbours_and_checkpoints_keep_to_their_term(tmp_path):
+    data, _ = synthetic(16)
+    with pytest.raises(ValueError, match="neighbour"):
+        Trainer(data, _config(interpolation_weight=1.0))
+    pairs = torch.tensor([[0, 1], [1, 2], [5, 6]])  # most texels have no neighbour: they keep the plain loss
+    trainer = Trainer(data, _config(interpolation_weight=1.0), neighbours=pairs, checkpoint=tmp_path / "ckpt.pt")
+    trainer.train(epochs=2)
+    assert np.all(np.isfinite(trainer.state.losses))
+    with pytest.raises(ValueError, match="another training set-up"):
+        Trainer(data, _config(), checkpoint=tmp_path / "ckpt.pt")
 
 
 def test_constraints_hold_after_every_step():

@@ -10,6 +10,10 @@ axis = normalise(raw), sharpness = exp(a sigmoid between log SHARPNESS_MIN and l
 amplitude = softplus(raw) * amplitude_scale (a data scale; the half-float packing scale comes at export).
 Loss (per pixel and channel): (log(1 + T) - log(1 + P))^2 weighted by the pixel's exact solid angle,
 P evaluated at a direction jittered uniformly inside the pixel, zero below the texel's normal.
+Interpolation term (TrainConfig.interpolation_weight > 0, both optimisers alike): for each texel of a step, one
+adjacent texel of the same object; the same loss for their blended parameters (as the node group's bilinear lookup
+blends them, `blend_parameters`) against their blended light fields, over directions above both horizons. It asks
+what the midpoint metric measures, from the training light fields alone (the held-out midpoints stay unseen).
 """
 from __future__ import annotations
 
@@ -50,6 +54,7 @@ class TrainConfig:
     plateau_steps: int = 2000
     plateau_rel: float = 1e-3
     below_horizon_weight: float = 0.0  # 0 = the paper's loss
+    interpolation_weight: float = 0.0  # 0 = the paper's loss; > 0 adds the interpolation term (needs neighbours)
     checkpoint_every_s: float = 30.0
     lr_drop_on_nan: float = 0.5
 
@@ -144,22 +149,42 @@ def jittered_directions(batch: int, resolution: int, generator: torch.Generator,
     return oct_decode(uv.clamp(-1.0, 1.0))
 
 
+def blend_parameters(params_a, params_b):
+    """Torch twin of `midpoint_parameters`: the parameters halfway between two texels as the node group's bilinear
+    lookup gives them (axes blended and renormalised, sharpness blended in its log encoding, amplitudes blended)."""
+    (axis_a, sharpness_a, amplitude_a), (axis_b, sharpness_b, amplitude_b) = params_a, params_b
+    total = axis_a + axis_b  # opposite axes blend to the zero vector, as the node group normalises it
+    axis = total / torch.linalg.vector_norm(total, dim=-1, keepdim=True).clamp_min(1e-8)
+    return axis, torch.sqrt(sharpness_a * sharpness_b), 0.5 * (amplitude_a + amplitude_b)
+
+
 def predict(params, directions):
     """Sum of SGs at directions (B, R, R, 3) for params ((B,N,3), (B,N), (B,N,C)) -> (B, R, R, C)."""
     axis, sharpness, amplitude = params
     return sg_sum_eval(directions, axis[:, None, None], sharpness[:, None, None], amplitude[:, None, None])
 
 
-def lightfield_loss(params, target, normals, directions, solid_angles, below_weight: float = 0.0):
+def _above_horizon(directions, normals):
+    """(B, R, R) directions above each texel's horizon; a zero normal has none (the environment: whole sphere)."""
+    whole_sphere = (normals.abs().sum(-1) == 0)[:, None, None]
+    return ((directions * normals[:, None, None, :]).sum(-1) > 0) | whole_sphere
+
+
+def lightfield_loss(params, target, normals, directions, solid_angles, below_weight: float = 0.0,
+                    other_normals=None, texel_weight=None):
     """Solid-angle-weighted log-L2 over the upper hemisphere; returns (loss, weight sum).
 
     below_weight > 0 also pulls the prediction towards 0 below the texel's horizon (the rendered image is 0
     there): the paper gives those directions no gradient, which leaves lobes there unconstrained, and a
-    neighbour whose horizon differs sees them after interpolation."""
+    neighbour whose horizon differs sees them after interpolation. other_normals (B, 3): count only directions
+    above both horizons (a blend of two texels' light fields). texel_weight (B,): per-texel weights."""
     prediction = predict(params, directions)
-    whole_sphere = (normals.abs().sum(-1) == 0)[:, None, None]  # a zero normal: no horizon (the environment)
-    above = ((directions * normals[:, None, None, :]).sum(-1) > 0) | whole_sphere
+    above = _above_horizon(directions, normals)
+    if other_normals is not None:
+        above = above & _above_horizon(directions, other_normals)
     weight = solid_angles[None] * torch.where(above, 1.0, below_weight)
+    if texel_weight is not None:
+        weight = weight * texel_weight[:, None, None]
     error = (torch.log1p(target) - torch.log1p(prediction.clamp_min(0))) ** 2
     total = (error.mean(dim=-1) * weight).sum()
     return total / weight.sum().clamp_min(1e-12), weight.sum()
@@ -235,8 +260,13 @@ class Trainer:
                                             data.channels, fraction).to(self.device)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.learning_rate)
         self.solid_angles = pixel_solid_angles(data.resolution, device=self.device)
-        self.neighbours = neighbours  # (M, 2) texel index pairs for the axis-alignment regulariser
+        self.neighbours = neighbours  # (M, 2) adjacent texel index pairs: axis-alignment and interpolation terms
         self.axis_alignment = axis_alignment
+        self._partners = None
+        if config.interpolation_weight > 0:
+            if neighbours is None:
+                raise ValueError("the interpolation term needs the texels' neighbour pairs")
+            self._partners = _partner_table(torch.as_tensor(neighbours, dtype=torch.int64), len(data.images))
         self.state = TrainState()
         if self.checkpoint is not None and self.checkpoint.is_file():
             self._load(self.checkpoint)
@@ -271,15 +301,40 @@ class Trainer:
 
     # --- training ----------------------------------------------------------------------------------
     def _batch_loss(self, index: torch.Tensor):
+        if self._partners is not None:  # each texel of the step and one random neighbour of it
+            partner, paired = self._random_partners(index)
+            index = torch.cat([index, partner])
         target = self.data.images[index].to(self.device)
         normals = self.data.normals[index].to(self.device)
         directions = jittered_directions(len(index), self.data.resolution, self.generator).to(self.device)
         params = self.constrained_parameters(index)
         loss, _ = lightfield_loss(params, target, normals, directions, self.solid_angles,
                                   self.config.below_horizon_weight)
+        if self._partners is not None and bool(paired.any()):
+            n = len(partner)
+            blended = blend_parameters(tuple(p[:n] for p in params), tuple(p[n:] for p in params))
+            interpolation, _ = lightfield_loss(blended, 0.5 * (target[:n] + target[n:]), normals[:n], directions[:n],
+                                               self.solid_angles, other_normals=normals[n:],
+                                               texel_weight=paired.to(self.device, torch.float32))
+            loss = loss + self.config.interpolation_weight * interpolation
         if self.mode == "per_texel" and self.axis_alignment > 0 and self.neighbours is not None:
             loss = loss + self.axis_alignment * self._alignment_penalty(index)
         return loss
+
+    def _random_partners(self, index):
+        """One uniformly chosen neighbour of each texel (itself where it has none) and whether it had one."""
+        targets, offsets, counts = self._partners
+        count = counts[index]
+        pick = (torch.rand(len(index), generator=self.generator) * count).long().clamp_max(count.clamp_min(1) - 1)
+        slot = (offsets[index] + pick).clamp(0, max(len(targets) - 1, 0))
+        paired = count > 0
+        partner = torch.where(paired, targets[slot], index) if len(targets) else index.clone()
+        return partner, paired
+
+    def _texels_per_step(self) -> int:
+        """Texels a step starts from (half the batch with the interpolation term: the other half are partners)."""
+        batch = max(1, min(self.config.batch_texels, len(self.data.images)))
+        return max(1, batch // 2) if self._partners is not None else batch
 
     def _alignment_penalty(self, index):
         """Mean over neighbour pairs inside the batch of (1 - a_j . b_j) per SG slot (Paper I's 'aligned axes')."""
@@ -319,7 +374,7 @@ class Trainer:
         """Train until the time budget, a loss plateau, `epochs` more epochs, or cancellation."""
         config, state = self.config, self.state
         texels = len(self.data.images)
-        batch = max(1, min(config.batch_texels, texels))
+        batch = self._texels_per_step()
         spent = state.seconds[-1] if state.seconds else 0.0
         last_checkpoint = time.perf_counter()
         target_epoch = state.epoch + epochs if epochs is not None else config.max_epochs
@@ -368,7 +423,7 @@ class Trainer:
 
     def _plateaued(self) -> bool:
         losses = self.state.losses
-        steps_per_epoch = math.ceil(len(self.data.images) / max(1, min(self.config.batch_texels, len(self.data.images))))
+        steps_per_epoch = math.ceil(len(self.data.images) / self._texels_per_step())
         window = max(self.config.plateau_epochs, math.ceil(self.config.plateau_steps / steps_per_epoch))
         if len(losses) < 2 * window:
             return False
@@ -386,7 +441,9 @@ class Trainer:
 
     def _load(self, path: Path):
         data = torch.load(path, map_location=self.device, weights_only=True)
-        if data.get("mode") != self.mode or data["config"].get("sg_count") != self.config.sg_count:
+        saved = data["config"]
+        if (data.get("mode") != self.mode or saved.get("sg_count") != self.config.sg_count
+                or saved.get("interpolation_weight", 0.0) != self.config.interpolation_weight):
             raise ValueError(f"{path}: checkpoint of another training set-up; delete it to start afresh")
         self.amplitude_scale = float(data["amplitude_scale"])
         self.model.load_state_dict(data["model"])
@@ -394,6 +451,14 @@ class Trainer:
         self.generator.set_state(data["generator"])
         torch.set_rng_state(data["torch_rng"])
         self.state = TrainState(**data["state"])
+
+
+def _partner_table(pairs: torch.Tensor, texels: int):
+    """Adjacency of (M, 2) pairs as (neighbour list, offset, count) per texel, both directions."""
+    both = torch.cat([pairs, pairs.flip(1)]).reshape(-1, 2)
+    both = both[torch.argsort(both[:, 0], stable=True)]
+    counts = torch.bincount(both[:, 0], minlength=texels)
+    return both[:, 1].contiguous(), torch.cumsum(counts, 0) - counts, counts
 
 
 def _clone_state(state):
