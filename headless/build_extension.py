@@ -19,8 +19,8 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_WHEELS = REPO / ".venv" / "wheels"
-STAGE_IGNORE = shutil.ignore_patterns(".git", ".venv", "__pycache__", "bake_out", "bench_out", "dist", "build",
-                                      "tests", ".pytest_cache", ".hypothesis", "*.zip")
+STAGE_IGNORE = shutil.ignore_patterns(".git", ".venv", "__pycache__", "bake_out", "bench_out*", "hair_data", "dist",
+                                      "build", "tests", ".pytest_cache", ".hypothesis", "*.zip")
 WHEEL_PLATFORMS = {"manylinux": "linux-x64", "win_amd64": "windows-x64", "macosx": "macos-arm64"}
 
 
