@@ -339,9 +339,8 @@ def _texel_inputs(atlas, texels):
 def midpoint_pairs(atlas: np.ndarray, count: int, seed: int = MIDPOINT_SEED) -> np.ndarray:
     """(M, 4) [row, col, row2, col2]: `count` random adjacent valid texels of one object (adjacent_texel_pairs)."""
     pairs = adjacent_texel_pairs(atlas)
-    rng = np.random.default_rng(seed)
-    pick = rng.choice(len(pairs), size=min(count, len(pairs)), replace=False) if len(pairs) else []
-    return pairs[np.sort(pick)] if len(pairs) else np.zeros((0, 4), np.int64)
+    pick = np.random.default_rng(seed).choice(len(pairs), size=min(count, len(pairs)), replace=False)
+    return pairs[np.sort(pick)]
 
 
 def _midpoint_inputs(scene, atlas, pairs):
