@@ -182,8 +182,10 @@ def check_thesis_convolution(sharpness=(10.0, 100.0), roughness=(0.3, 0.5), ndot
 
 
 def check_glossy(sharpness=(1.0, 10.0, 100.0, 1e3, 1e4), roughness=ROUGHNESS_GRID, ndotv=NDOTV_GRID,
-                 min_points=MIN_POINTS, f0=0.04):
-    """One SG's glossy contribution vs quadrature of the exact GGX BRDF (same F and G) times the SG."""
+                 min_points=MIN_POINTS, f0=0.04, glossy=None):
+    """One SG's glossy contribution (`glossy`, default sg_math.sg_glossy) vs quadrature of the exact GGX BRDF
+    (same F and G) times the SG."""
+    glossy = glossy or m.sg_glossy
     per_roughness = {}
     for r in roughness:
         w = _Worst()
@@ -201,7 +203,7 @@ def check_glossy(sharpness=(1.0, 10.0, 100.0, 1e3, 1e4), roughness=ROUGHNESS_GRI
                 ref = np.sum(integrand * q)
                 if peak_value is None:
                     peak_value = ref
-                got = m.sg_glossy(axis, np.float64(lam), np.ones(1), n, v, np.float64(r), np.array([f0]))[0]
+                got = glossy(axis, np.float64(lam), np.ones(1), n, v, np.float64(r), np.array([f0]))[0]
                 w.add(abs(got - ref) / peak_value, sharpness=lam, ndotv=c, axis=name)
         per_roughness[r] = w
     return [CheckResult(f"glossy of one SG, roughness {r:g}", w.err, w.n,

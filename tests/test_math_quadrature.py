@@ -2,7 +2,6 @@
 
 Exact identities must match to rounding. Approximations are held to the accuracy measured when
 they were adopted (error relative to the peak response, see check_math), so a regression shows."""
-import itertools
 
 import numpy as np
 import pytest
@@ -149,37 +148,20 @@ def test_sh_glossy_lobe_matches_quadrature_of_the_warped_ndf(roughness, tol):
         np.testing.assert_allclose(got, (warped[:, None] * radiance * w[:, None]).sum(0), rtol=tol)
 
 
-def _glossy_errors(glossy, roughness, sharpness, ndotv):
-    """(error / peak) of `glossy` against quadrature of the exact GGX BRDF times one SG (check_math.check_glossy's
-    cases: on the warped lobe's axis and one combined width off it either way)."""
-    errors = []
-    for r, lam, c in itertools.product(roughness, sharpness, ndotv):
-        n, v, asg = cm._asg_for(r, c)
-        wx, wy = cm._asg_widths(asg)
-        frame = (np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), n)
-        peak = None
-        for axis in cm._offset_axes(asg, lam).values():
-            d, q = cm.adaptive_sphere_quadrature(frame, [(asg.z, wy, wx), (axis, cm.sg_width(lam), cm.sg_width(lam))],
-                                                 min_points=100_000, hemisphere=True)
-            ref = np.sum(m.sg_eval(d, axis, np.float64(lam), np.ones(1))[:, 0]
-                         * m.ggx_brdf_cos(d, v, n, np.float64(r), np.array([0.04]))[:, 0] * q)
-            peak = ref if peak is None else peak
-            got = glossy(axis, np.float64(lam), np.ones(1), n, v, np.float64(r), np.array([0.04]))[0]
-            errors.append((got - ref) / peak)
-    return np.abs(errors)
-
-
 def test_local_warp_glossy_beats_the_warp_at_the_mirror_direction():
     """sg_glossy_local_warp (Laplace about the SG x NDF peak, the warp's Jacobian taken there, two NDF lobes, horizon
-    share) against the paper's form: at n.v >= 0.5 within 6 % of the peak where the paper's form is off by 20-27 %,
-    and a smaller RMS error down to n.v = 0.2 (measured when written: 0.20-0.27 -> 0.03-0.05; RMS 0.17 -> 0.07 at
-    roughness 0.3)."""
-    grid = dict(roughness=(0.2, 0.3, 0.5), sharpness=(10.0, 100.0))
-    paper, local = (_glossy_errors(f, ndotv=(1.0, 0.5), **grid) for f in (m.sg_glossy, m.sg_glossy_local_warp))
-    assert local.max() < 0.06 < 0.15 < paper.max(), (local.max(), paper.max())
-    grazing = dict(grid, ndotv=(0.2,))
-    paper, local = (_glossy_errors(f, **grazing) for f in (m.sg_glossy, m.sg_glossy_local_warp))
-    assert np.sqrt(np.mean(local**2)) < 0.7 * np.sqrt(np.mean(paper**2)), (local, paper)
+    share) against the paper's form, check_glossy's cases: at n.v >= 0.5 within 6 % of the peak where the paper's
+    form is off by 15 % or more, and at n.v = 0.2 a clearly smaller worst case (measured when written, SG sharpness
+    3-1000: 0.20-0.27 -> 0.03-0.05 of the peak at n.v >= 0.5; 0.20/0.31/0.78 -> 0.08/0.18/0.45 at n.v = 0.2,
+    roughness 0.2/0.3/0.5)."""
+    for roughness in (0.2, 0.3, 0.5):
+        grid = dict(roughness=(roughness,), sharpness=(10.0, 100.0), min_points=100_000)
+        (paper,), (local,) = (cm.check_glossy(ndotv=(1.0, 0.5), glossy=f, **grid)
+                              for f in (m.sg_glossy, m.sg_glossy_local_warp))
+        assert local.max_rel_error < 0.06 < 0.15 < paper.max_rel_error, (roughness, local, paper)
+        (paper,), (local,) = (cm.check_glossy(ndotv=(0.2,), glossy=f, **grid)
+                              for f in (m.sg_glossy, m.sg_glossy_local_warp))
+        assert local.max_rel_error < 0.7 * paper.max_rel_error, (roughness, local, paper)
 
 
 def test_local_warp_follows_the_lobe_above_the_mirror_direction_at_grazing():
