@@ -246,7 +246,7 @@ def sg_glossy_local_warp(axis, sharpness, amplitude, normal, view, roughness, f0
                          iterations=LOCAL_WARP_ITERATIONS):
     """sg_glossy with a local warp: measured far closer to quadrature, not yet what the node group evaluates.
 
-    For each SG lobe of the NDF (GGX_NDF_LOBES): the integral of SG(l) D(h(l)) by Laplace's method about the
+    For each SG lobe of the NDF (`lobes`, iterations >= 1): the integral of SG(l) D(h(l)) by Laplace's method about the
     product's peak l*. The NDF is warped to the reflected-direction domain with its Jacobian taken at l*, not at
     the mirror direction z as Xu et al. 2013 do: a half-vector offset moves l by 2x in the plane of v and l, by
     2 (v.h) across it (sharpnesses lam/8 and lam / (8 (v.h)^2)). At grazing view v.h grows fast away from z, so
