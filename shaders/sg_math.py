@@ -219,11 +219,15 @@ def sg_glossy(axis, sharpness, amplitude, normal, view, roughness, f0):
     conv = sum(sg_asg_convolve(axis, sharpness, amplitude, asg) for asg in asgs)
     asg = asgs[0]
     ndotv = np.clip(dot(normal, view), NDOTV_MIN, 1)
-    ndotl = np.clip(dot(normal, asg.z), NDOTV_MIN, 1)
-    h = safe_normalize(asg.z + view)
-    f = fresnel_schlick(f0, dot(view, h))
+    return conv * microfacet_factor(normal, view, asg.z, safe_normalize(asg.z + view), ndotv, roughness, f0)
+
+
+def microfacet_factor(normal, view, light, half, ndotv, roughness, f0):
+    """Schlick Fresnel at v.h times height-correlated Smith G over 4 (n.v), for one light direction: what multiplies
+    the NDF integral of an SG."""
+    ndotl = np.clip(dot(normal, light), NDOTV_MIN, 1)
     g = smith_g2_ggx(ndotl, ndotv, ggx_alpha(roughness))
-    return conv * f * (g / (4 * ndotv))[..., None]
+    return fresnel_schlick(f0, dot(view, half)) * (g / (4 * ndotv))[..., None]
 
 
 def normalize_or_zero(v):
@@ -263,15 +267,14 @@ def sg_glossy_local_warp(axis, sharpness, amplitude, normal, view, roughness, f0
     Not in the node group yet: it takes about 2.6x the nodes (4110 for 16 SGs), and building node groups in
     bpy grows faster than linearly with their size (16 s for 1558 nodes, 312 s for 4110 on this machine)."""
     z, _, _, ndotv = reflection_frame(normal, view)
-    alpha = ggx_alpha(roughness)
+    _, lam_d, mu_d = ndf_sg(normal, roughness)
     nu = sharpness / 2
     along_z = dot(axis, z)
     tangent = axis - along_z[..., None] * z  # the SG axis in the tangent plane at z
     facing = np.maximum(along_z, 0)
     total, factor = 0.0, None
     for amplitude_scale, sharpness_scale in lobes:
-        lam = 2.0 * sharpness_scale / alpha**2
-        mu = amplitude_scale / (np.pi * alpha**2)
+        lam, mu = lam_d * sharpness_scale, mu_d * amplitude_scale
         lam_in = lam / 8  # along the plane of v and l: any v.h
         lam_across = lam / (8 * ndotv**2)
         peak = z
@@ -290,8 +293,7 @@ def sg_glossy_local_warp(axis, sharpness, amplitude, normal, view, roughness, f0
         above = horizon_fraction(dot(normal, peak), lam_in + nu * cosine)  # the lobe below it reflects nothing
         integral = amplitude * (mu * width * above * np.exp(exponent))[..., None]
         if factor is None:
-            ndotl = np.clip(dot(normal, peak), NDOTV_MIN, 1)
-            factor = fresnel_schlick(f0, dot(view, half)) * (smith_g2_ggx(ndotl, ndotv, alpha) / (4 * ndotv))[..., None]
+            factor = microfacet_factor(normal, view, peak, half, ndotv, roughness, f0)
         total = total + integral * factor
     return total
 
