@@ -259,8 +259,12 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
 
 
 def _remove_unused_groups():
-    for group in [g for g in bpy.data.node_groups if VERSION_KEY in g and g.name.startswith(GROUP_NAME)]:
-        if group.users == 0:
+    """Remove the bake's node groups nothing uses; a nested group ('<group> / ...') is freed by removing its parent."""
+    while True:
+        unused = [g for g in bpy.data.node_groups if VERSION_KEY in g and g.name.startswith(GROUP_NAME) and g.users == 0]
+        if not unused:
+            return
+        for group in unused:
             bpy.data.node_groups.remove(group)
 
 

@@ -240,12 +240,13 @@ class BakeJob:
 
     def _evaluate(self):
         try:
-            from .evaluate import evaluate_stage
+            from .evaluate import evaluate_stage, reference_samples_for
         except ImportError:
-            from blender_addon.evaluate import evaluate_stage
+            from blender_addon.evaluate import evaluate_stage, reference_samples_for
 
-        yield "evaluate", self._overall("evaluate", 0.0), "reference and baked renders"
-        return evaluate_stage(self.scene, self.plan, self.out_dir)
+        samples = reference_samples_for(self.plan.settings)
+        yield "evaluate", self._overall("evaluate", 0.0), f"reference ({samples} spp) and baked renders"
+        return evaluate_stage(self.scene, self.plan, self.out_dir, reference_samples=samples)
 
     def _apply(self):
         yield "apply", self._overall("apply", 0.0), "materials"

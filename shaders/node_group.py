@@ -2,7 +2,9 @@
 
 The group evaluates shaders/sg_shading.py with every operation turned into one Blender shader node that
 EEVEE and Cycles both support (Math, Vector Math, Clamp, Image Texture, Geometry; no OSL), so the numpy
-reference (`shade(NumpyOps(), ...)`) is the group's exact formula.
+reference (`shade(NumpyOps(), ...)`) is the group's exact formula. What repeats per SG (the glossy of one SG, one
+bilinear tile lookup) is a nested group built once and instanced (`NodeOps.call`): 16 SGs build in about 2 s
+instead of 35 s flat, and the renderers flatten it back into the same graph.
 
 Texture layout (one RGBA half-float image, `SGTextureLayout`): the lightmap atlas repeated as tiles in a
 grid; tile 'sg' j = (axis xyz, log-encoded sharpness), 'amp' j = (rgb amplitude, 0), 'irradiance' = (rgb, 1), 'iwev' j
@@ -26,7 +28,7 @@ except ImportError:
     from shaders.sg_shading import shade
 
 GROUP_NAME = "SG Lightfield"
-GROUP_VERSION = 1
+GROUP_VERSION = 2  # 2: the local-warp glossy (sg_math.sg_glossy) in nested groups
 VERSION_KEY = "sglf_version"
 COLUMN_NODES = 40  # nodes per column in the automatic layout
 
@@ -65,13 +67,26 @@ class SGTextureLayout:
                 "tiles": [list(t) for t in self.tiles]}
 
 
+SOCKET_TYPES = {"VALUE": "NodeSocketFloat", "VECTOR": "NodeSocketVector", "RGBA": "NodeSocketColor"}
+
+
+def socket_type(value) -> str:
+    """Interface socket type for a NodeOps value: an output socket, a Python number or a 3-tuple."""
+    if isinstance(value, (int, float)):
+        return "NodeSocketFloat"
+    if isinstance(value, tuple):
+        return "NodeSocketVector"
+    return SOCKET_TYPES[value.type]
+
+
 class NodeOps:
     """sg_shading operations as shader nodes. Constants stay Python numbers until an input needs them."""
 
-    def __init__(self, tree):
+    def __init__(self, tree, subgroups=None):
         self.tree = tree
         self.count = 0
         self.gate = None  # a non-negative colour later texture lookups are made to depend on
+        self.subgroups = {} if subgroups is None else subgroups  # call name -> nested node group, built once
 
     def barrier(self, value):
         """Make later texture lookups depend on `value` (a sum that is >= 0) by adding min(value, 0) = 0 to their
@@ -87,6 +102,33 @@ class NodeOps:
         node.hide = True
         self.count += 1
         return node
+
+    def call(self, name, function, **inputs):
+        """function(ops, **inputs) -> {output: value} as one Group node. The nested group `<tree name> / name` is
+        built on the first call and instanced after that: bpy re-checks the whole tree for every node and link it
+        adds, so building one flat group takes time quadratic in its size (measured: 0.4 s for 500 Math nodes,
+        18 s for 2000), while the renderers flatten nested groups back into the same graph."""
+        if name not in self.subgroups:
+            self.subgroups[name] = self._build_subgroup(f"{self.tree.name} / {name}", function, inputs)
+        node = self._node("ShaderNodeGroup", node_tree=self.subgroups[name])
+        for key, value in inputs.items():
+            self._feed(node.inputs[key], value)
+        return {socket.name: socket for socket in node.outputs}
+
+    def _build_subgroup(self, name, function, inputs):
+        group = new_or_cleared_group(name)
+        for key, value in inputs.items():
+            group.interface.new_socket(key, in_out="INPUT", socket_type=socket_type(value))
+        ops = NodeOps(group, self.subgroups)
+        group_inputs = ops._node("NodeGroupInput")
+        outputs = function(ops, **{key: group_inputs.outputs[key] for key in inputs})
+        for key, value in outputs.items():
+            group.interface.new_socket(key, in_out="OUTPUT", socket_type=socket_type(value))
+        group_outputs = ops._node("NodeGroupOutput")
+        for key, value in outputs.items():
+            ops._feed(group_outputs.inputs[key], value)
+        group[VERSION_KEY] = GROUP_VERSION
+        return group
 
     def _feed(self, socket, value):
         if hasattr(value, "links") or hasattr(value, "is_linked"):
@@ -182,8 +224,8 @@ class NodeOps:
         return self._vmath("MINIMUM", a, b)
 
 
-def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GROUP_NAME):
-    """Create or update the node group; returns it. `image` is the packed SG image (Non-Color, half float)."""
+def new_or_cleared_group(name: str):
+    """The shader node group `name`, emptied (its users keep it), or a new one."""
     import bpy
 
     group = bpy.data.node_groups.get(name)
@@ -191,6 +233,13 @@ def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GRO
         group = bpy.data.node_groups.new(name, "ShaderNodeTree")
     group.nodes.clear()
     group.interface.clear()
+    return group
+
+
+def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GROUP_NAME):
+    """Create or update the node group and its nested groups (`<name> / ...`); returns it. `image` is the packed SG
+    image (Non-Color, half float)."""
+    group = new_or_cleared_group(name)
     sockets = [("UV", "INPUT", "NodeSocketVector"), ("Normal", "INPUT", "NodeSocketVector"),
                ("Roughness", "INPUT", "NodeSocketFloat"), ("F0", "INPUT", "NodeSocketColor"),
                ("Albedo", "INPUT", "NodeSocketColor"), ("Total", "OUTPUT", "NodeSocketColor"),
@@ -219,24 +268,32 @@ def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GRO
         wy = ty if dy else ops.sub(1.0, ty)
         corners.append((corner, ops.mul(wx, wy)))
     cache = {}
+    corner_inputs = {f"corner {i}": corner for i, (corner, _) in enumerate(corners)}
+    corner_inputs.update({f"weight {i}": weight for i, (_, weight) in enumerate(corners)})
+
+    def bilinear_tile(tile_ops, offset, **corner_inputs):
+        """The four 'Closest' lookups of the tile at `offset` (column, row), blended: {'colour', 'alpha'}."""
+        color_sum = alpha_sum = None
+        for i in range(len(corners)):
+            shifted = tile_ops._vmath("ADD", corner_inputs[f"corner {i}"], offset)
+            uv = tile_ops._vmath("MULTIPLY", shifted, (1.0 / columns, 1.0 / rows, 1.0))
+            texture = tile_ops._node("ShaderNodeTexImage", image=image, interpolation="Closest", extension="EXTEND")
+            tile_ops.tree.links.new(uv, texture.inputs["Vector"])
+            weight = corner_inputs[f"weight {i}"]
+            color = tile_ops.vscale(texture.outputs["Color"], weight)
+            alpha = tile_ops.mul(texture.outputs["Alpha"], weight)
+            color_sum = color if color_sum is None else tile_ops.vadd(color_sum, color)
+            alpha_sum = alpha if alpha_sum is None else tile_ops.add(alpha_sum, alpha)
+        return {"colour": color_sum, "alpha": alpha_sum}
 
     def lookup(kind, j):
         if (kind, j) not in cache:
             col, row = layout.tile_offset(kind, j)
-            color_sum = alpha_sum = None
             offset = (float(col), float(row), 0.0)
             if ops.gate is not None:  # exactly (col, row, 0), but only once the previous SG is done
                 offset = ops._vmath("ADD", ops._vmath("MINIMUM", ops.gate, (0.0, 0.0, 0.0)), offset)
-            for corner, weight in corners:
-                shifted = ops._vmath("ADD", corner, offset)
-                uv = ops._vmath("MULTIPLY", shifted, (1.0 / columns, 1.0 / rows, 1.0))
-                texture = ops._node("ShaderNodeTexImage", image=image, interpolation="Closest", extension="EXTEND")
-                group.links.new(uv, texture.inputs["Vector"])
-                color = ops.vscale(texture.outputs["Color"], weight)
-                alpha = ops.mul(texture.outputs["Alpha"], weight)
-                color_sum = color if color_sum is None else ops.vadd(color_sum, color)
-                alpha_sum = alpha if alpha_sum is None else ops.add(alpha_sum, alpha)
-            cache[(kind, j)] = (color_sum, alpha_sum)
+            tile = ops.call("bilinear tile", bilinear_tile, offset=offset, **corner_inputs)
+            cache[(kind, j)] = (tile["colour"], tile["alpha"])
         return cache[(kind, j)]
 
     result = shade(ops, lookup, inputs.outputs["Normal"], geometry.outputs["Incoming"], inputs.outputs["Roughness"],

@@ -29,16 +29,15 @@ TINY_SQUARED_LENGTH = 1e-30  # floor under |v|^2 before a square root (finite gr
 # GGX NDF in the half-vector domain as a sum of SGs, (a, b) per lobe: sharpness 2 b / alpha^2, amplitude
 # a / (pi alpha^2). GGX_NDF_PEAK_MATCHED is the paper's single SG; GGX_NDF_TWO_LOBES a least-squares fit of GGX's
 # long-tailed shape (1 + t^2)^-2, t = tan(theta) / alpha, weighted by area, projected integral held at 1
-# (shaders/check_math.py fit_ggx_ndf_lobes): 4.5 % shape error against 28 %. Against quadrature of the exact GGX
-# BRDF (check_math.check_glossy, n.v >= 0.5, SG sharpness 30-1000) the single SG reflects 5-23 % too much light,
-# the two within 6 %. The bake uses the single SG all the same: measured end to end against Cycles (make bench,
-# presets on three scenes) the two lobes were no better (room, courtyard: within 0.002 FLIP) or worse (spheres'
-# glossy pixels: +3-7 %), because the fitted SGs keep only 90-99 % of the rendered energy (the log loss's bias,
-# training.sg_fit.energy_kept) and the single SG's excess hides that. The two lobes wait for an unbiased fit.
+# (shaders/check_math.py fit_ggx_ndf_lobes): 4.5 % shape error against 28 %. The product's glossy (sg_glossy, the
+# local warp) uses the two lobes; the paper's form (sg_glossy_mirror_warp) and the SH baseline's convolution the
+# single SG: under the warp at the mirror direction the single SG's 5-23 % excess (n.v >= 0.5) offset the warp's
+# too narrow lobe at grazing, and two lobes measured no better end to end there.
 GGX_NDF_PEAK_MATCHED = ((1.0, 1.0),)
 GGX_NDF_TWO_LOBES = ((0.8154517580, 1.7728163207), (0.1432483284, 0.2652625597))
-GGX_NDF_LOBES = GGX_NDF_PEAK_MATCHED  # what sg_glossy, the torch twin and the node group evaluate
-LOCAL_WARP_ITERATIONS = 2  # sg_glossy_local_warp: solves for the SG x NDF peak, each with the warp's Jacobian there
+GGX_NDF_LOBES = GGX_NDF_PEAK_MATCHED  # sg_glossy_mirror_warp's and the SH baseline's NDF
+GLOSSY_NDF_LOBES = GGX_NDF_TWO_LOBES  # sg_glossy's NDF (numpy, torch and the node group)
+LOCAL_WARP_ITERATIONS = 2  # sg_glossy: solves for the SG x NDF peak, each with the warp's Jacobian there
 
 # Clamped-cosine Legendre coefficients c_l = 2*pi * integral_0^1 P_l(t) t dt (Funk-Hecke), l = 0..4.
 CLAMPED_COSINE_LEGENDRE = (math.pi, 2.0 * math.pi / 3.0, math.pi / 4.0, 0.0, -math.pi / 24.0)
@@ -210,11 +209,11 @@ def ggx_brdf_cos(light, view, normal, roughness, f0):
     return np.where((ndotl > 0)[..., None], f * (d * g / (4 * ndotv))[..., None], 0.0)
 
 
-def sg_glossy(axis, sharpness, amplitude, normal, view, roughness, f0):
-    """Radiance reflected toward `view` by a GGX surface lit by one SG (Paper I section 6).
+def sg_glossy_mirror_warp(axis, sharpness, amplitude, normal, view, roughness, f0):
+    """The paper's glossy (Paper I section 6, Xu et al. 2013), kept as the comparison for sg_glossy.
 
-    Convolution of the SG with the warped NDF (each lobe of GGX_NDF_LOBES), times Fresnel, Smith masking
-    and (n.l) / (4 (n.l)(n.v)), all evaluated at l = z (the reflected view direction)."""
+    Convolution of the SG with the NDF warped about the mirror direction z (each lobe of GGX_NDF_LOBES), times
+    Fresnel, Smith masking and (n.l) / (4 (n.l)(n.v)), all evaluated at l = z."""
     asgs = [warp_ndf_to_asg(normal, view, roughness, lobe) for lobe in GGX_NDF_LOBES]
     conv = sum(sg_asg_convolve(axis, sharpness, amplitude, asg) for asg in asgs)
     asg = asgs[0]
@@ -237,18 +236,19 @@ def normalize_or_zero(v):
 
 
 HORIZON_LOGISTIC = 1.702  # logistic slope that follows the normal CDF within 0.01
+HORIZON_EXPONENT_MAX = 60.0  # the logistic's exponent is clamped here (share 1e-26) so exp stays finite in float32
 
 
 def horizon_fraction(elevation, sharpness):
     """Share of a Gaussian lobe exp(-sharpness t^2) (t: angle along the elevation) centred at sin(elevation)
     `elevation` that lies above the horizon: the normal CDF at elevation / sigma, sigma = 1 / sqrt(2 sharpness),
     as a logistic (node-friendly)."""
-    return 1 / (1 + np.exp(-HORIZON_LOGISTIC * elevation * np.sqrt(2 * sharpness)))
+    return 1 / (1 + np.exp(np.minimum(-HORIZON_LOGISTIC * elevation * np.sqrt(2 * sharpness), HORIZON_EXPONENT_MAX)))
 
 
-def sg_glossy_local_warp(axis, sharpness, amplitude, normal, view, roughness, f0, lobes=GGX_NDF_TWO_LOBES,
-                         iterations=LOCAL_WARP_ITERATIONS):
-    """sg_glossy with a local warp: measured far closer to quadrature, not yet what the node group evaluates.
+def sg_glossy(axis, sharpness, amplitude, normal, view, roughness, f0, lobes=GLOSSY_NDF_LOBES,
+              iterations=LOCAL_WARP_ITERATIONS):
+    """Radiance reflected toward `view` by a GGX surface lit by one SG: what the node group evaluates.
 
     For each SG lobe of the NDF (`lobes`, iterations >= 1): the integral of SG(l) D(h(l)) by Laplace's method about the
     product's peak l*. The NDF is warped to the reflected-direction domain with its Jacobian taken at l*, not at
@@ -263,9 +263,8 @@ def sg_glossy_local_warp(axis, sharpness, amplitude, normal, view, roughness, f0
 
     Measured (shaders/check_math.py check_glossy grid, and the demo spheres' fitted SGs at the Draft camera):
     error / peak at n.v >= 0.5 falls from 0.20-0.27 to 0.03-0.05; on the spheres' texels the closed form against
-    quadrature of the exact BRDF on the same SGs falls from 30/34/41 % to 5/4/9 % at roughness 0.3/0.4/0.5.
-    Not in the node group yet: it takes about 2.6x the nodes (4110 for 16 SGs), and building node groups in
-    bpy grows faster than linearly with their size (16 s for 1558 nodes, 312 s for 4110 on this machine)."""
+    quadrature of the exact BRDF on the same SGs falls from 30/34/41 % to 5/4/9 % at roughness 0.3/0.4/0.5
+    (sg_glossy_mirror_warp, the paper's form, is the comparison)."""
     z, _, _, ndotv = reflection_frame(normal, view)
     _, lam_d, mu_d = ndf_sg(normal, roughness)
     nu = sharpness / 2

@@ -8,17 +8,17 @@ nodes to this reference.
 Semantics follow Blender's math nodes where they differ from plain numpy: division by zero gives 0,
 normalising a zero vector gives the zero vector, square roots of negatives give 0.
 
-Glossy (Paper I section 6, DESIGN section 3): for every SG j of the texel, the SG convolved with the GGX NDF
-(the SGs of sg_math.GGX_NDF_LOBES) warped to anisotropic SGs about the reflected view direction z (Xu et al.
-2013), times Schlick Fresnel and
-height-correlated Smith G over 4 (n.v). The ASG exponent is written frame-free across the plane of
-incidence, -sy (1 - (u.z)^2) - (sx - sy) (u.x)^2, so normal incidence (x undefined) needs no fallback.
-Environment: the same convolution of the environment's global SGs, times W_E(z) from the texel's IWEV SGs.
+Glossy (Paper I section 6, DESIGN section 3): for every SG j of the texel, sg_math.sg_glossy (`glossy_sg`): the
+SG times the two-lobe GGX NDF integrated by Laplace's method about their product's peak, with the NDF's warp to
+light directions taken at that peak (not at the mirror direction z, Xu et al. 2013, which makes the lobe far too
+narrow at grazing view), each lobe's share above the horizon, times Schlick Fresnel and height-correlated Smith G
+over 4 (n.v) at the peak. The node backend builds `glossy_sg` once as a nested group (`ops.call`) and instances it
+per SG. Environment: the same glossy of the environment's global SGs, times W_E(z) from the texel's IWEV SGs.
 Diffuse: albedo x irradiance / pi, the irradiance read from its own texture tile (see apply.py for why).
 The SH L2 baseline (the benchmark's encoder at equal bytes) swaps the glossy sum for the radiance's 9 SH
-coefficients convolved with the same warped NDF, each lobe taken as the isotropic SG of equal solid-angle
-integral (sharpness 2 sqrt(lam_x lam_y)): Funk-Hecke gives each band the SG's exact Legendre ratio
-(sh_band_ratios).
+coefficients convolved with the NDF warped about z (GGX_NDF_LOBES), Fresnel and G taken at z; each warped lobe
+is taken as the isotropic SG of equal solid-angle integral (sharpness 2 sqrt(lam_x lam_y)): Funk-Hecke gives
+each band the SG's exact Legendre ratio (sh_band_ratios).
 """
 from __future__ import annotations
 
@@ -27,9 +27,11 @@ import math
 import numpy as np
 
 try:
-    from .sg_math import GGX_NDF_LOBES, NDOTV_MIN, ROUGHNESS_MIN, SHARPNESS_MAX, SHARPNESS_MIN
+    from .sg_math import (GGX_NDF_LOBES, GLOSSY_NDF_LOBES, HORIZON_EXPONENT_MAX, HORIZON_LOGISTIC,
+                          LOCAL_WARP_ITERATIONS, NDOTV_MIN, ROUGHNESS_MIN, SHARPNESS_MAX, SHARPNESS_MIN)
 except ImportError:
-    from shaders.sg_math import GGX_NDF_LOBES, NDOTV_MIN, ROUGHNESS_MIN, SHARPNESS_MAX, SHARPNESS_MIN
+    from shaders.sg_math import (GGX_NDF_LOBES, GLOSSY_NDF_LOBES, HORIZON_EXPONENT_MAX, HORIZON_LOGISTIC,
+                                 LOCAL_WARP_ITERATIONS, NDOTV_MIN, ROUGHNESS_MIN, SHARPNESS_MAX, SHARPNESS_MIN)
 
 
 class NumpyOps:
@@ -37,6 +39,10 @@ class NumpyOps:
 
     def barrier(self, value):
         """Order hint for the node backend (later lookups wait for `value`); nothing to do in numpy."""
+
+    def call(self, name, function, **inputs):
+        """function(ops, **inputs) -> {output: value}; the node backend builds it once as a nested group `name`."""
+        return function(self, **inputs)
 
     def const(self, value):
         return np.float64(value)
@@ -119,8 +125,9 @@ def decode_sharpness(ops, encoded):
 
 
 def warped_lobe(ops, normal, view, roughness):
-    """Per-pixel terms shared by every SG: n, v, z, x, n.v, alpha, and per NDF lobe (sharpness across the plane
-    of incidence, sharpness along it, amplitude)."""
+    """Per-pixel terms shared by every SG: n, v, z (the mirror direction), x, n.v, alpha, the NDF SG's sharpness and
+    amplitude (lam_d, mu_d), and per lobe of GGX_NDF_LOBES warped about z (sharpness across the plane of
+    incidence, sharpness along it, amplitude) for the SH baseline."""
     n = ops.normalize(normal)
     v = ops.normalize(view)
     r = ops.clamp(roughness, ROUGHNESS_MIN, 1.0)
@@ -134,47 +141,70 @@ def warped_lobe(ops, normal, view, roughness):
     lam_x = ops.div(lam_d, ops.mul(ops.const(8.0), ops.mul(ndotv, ndotv)))
     lam_y = ops.mul(lam_d, ops.const(1.0 / 8.0))
     lobes = [(ops.mul(lam_x, b), ops.mul(lam_y, b), ops.mul(mu_d, a)) for a, b in GGX_NDF_LOBES]
-    return {"n": n, "v": v, "z": z, "x": x, "ndotv": ndotv, "lobes": lobes, "alpha": alpha}
+    return {"n": n, "v": v, "z": z, "x": x, "ndotv": ndotv, "lobes": lobes, "alpha": alpha, "lam_d": lam_d,
+            "mu_d": mu_d}
 
 
-def convolve(ops, lobe, axis, sharpness, amplitude):
-    """One SG (axis, sharpness, colour amplitude) convolved with the warped NDF, lobe by lobe (Xu et al. 2013)."""
-    axis = ops.normalize(axis)
-    lam = ops.clamp(sharpness, SHARPNESS_MIN, SHARPNESS_MAX)
-    amplitude = ops.vmax(amplitude, ops.vconst((0.0, 0.0, 0.0)))
-    nu = ops.mul(lam, ops.const(0.5))
-    c = ops.dot(axis, lobe["z"])
-    a = ops.dot(axis, lobe["x"])
-    across, cosine = ops.sub(ops.const(1.0), ops.mul(c, c)), ops.maximum(c, ops.const(0.0))
-    weight = None
-    for lam_x, lam_y, mu in lobe["lobes"]:
-        nx = ops.add(nu, lam_x)
-        ny = ops.add(nu, lam_y)
-        sx = ops.div(ops.mul(nu, lam_x), nx)
-        sy = ops.div(ops.mul(nu, lam_y), ny)
-        scale = ops.div(ops.const(math.pi), ops.sqrt(ops.mul(nx, ny)))
-        exponent = ops.sub(ops.mul(ops.sub(ops.const(0.0), sy), across), ops.mul(ops.sub(sx, sy), ops.mul(a, a)))
-        term = ops.mul(ops.mul(mu, scale), ops.exp(exponent))
-        weight = term if weight is None else ops.add(weight, term)
-    return ops.vscale(amplitude, ops.mul(weight, cosine))
-
-
-def microfacet_factor(ops, lobe, f0):
-    """Fresnel (Schlick) x height-correlated Smith G / (4 n.v), evaluated at l = z: a colour."""
-    h = ops.normalize(ops.vadd(lobe["z"], lobe["v"]))
-    one_minus = ops.sub(ops.const(1.0), ops.clamp(ops.dot(lobe["v"], h), 0.0, 1.0))
+def microfacet_factor(ops, n, v, light, half, ndotv, alpha, f0):
+    """Fresnel (Schlick) at v.h x height-correlated Smith G / (4 n.v), for one light direction: a colour."""
+    one_minus = ops.sub(ops.const(1.0), ops.clamp(ops.dot(v, half), 0.0, 1.0))
     weight = ops.power(one_minus, 5.0)
     fresnel = ops.vadd(f0, ops.vscale(ops.vsub(ops.vconst((1.0, 1.0, 1.0)), f0), weight))
-    ndotl = ops.clamp(ops.dot(lobe["n"], lobe["z"]), NDOTV_MIN, 1.0)
-    alpha2 = ops.mul(lobe["alpha"], lobe["alpha"])
+    ndotl = ops.clamp(ops.dot(n, light), NDOTV_MIN, 1.0)
+    alpha2 = ops.mul(alpha, alpha)
 
     def smith_lambda(c):
         c2 = ops.mul(c, c)
         return ops.mul(ops.const(0.5), ops.sub(ops.sqrt(ops.add(ops.const(1.0), ops.div(
             ops.mul(alpha2, ops.sub(ops.const(1.0), c2)), c2))), ops.const(1.0)))
 
-    g = ops.div(ops.const(1.0), ops.add(ops.add(ops.const(1.0), smith_lambda(ndotl)), smith_lambda(lobe["ndotv"])))
-    return ops.vscale(fresnel, ops.div(g, ops.mul(ops.const(4.0), lobe["ndotv"])))
+    g = ops.div(ops.const(1.0), ops.add(ops.add(ops.const(1.0), smith_lambda(ndotl)), smith_lambda(ndotv)))
+    return ops.vscale(fresnel, ops.div(g, ops.mul(ops.const(4.0), ndotv)))
+
+
+def horizon_fraction(ops, elevation, sharpness):
+    """sg_math.horizon_fraction: the logistic share of a lobe above the horizon."""
+    exponent = ops.mul(ops.mul(elevation, -HORIZON_LOGISTIC), ops.sqrt(ops.mul(sharpness, 2.0)))
+    return ops.div(1.0, ops.add(1.0, ops.exp(ops.minimum(exponent, HORIZON_EXPONENT_MAX))))
+
+
+def glossy_sg(ops, n, v, z, ndotv, lam_d, mu_d, alpha, f0, axis, sharpness, amplitude):
+    """sg_math.sg_glossy of one SG (axis, sharpness, colour amplitude) step by step: {'glossy': colour}. The
+    arguments after f0 are the SG's; the others are warped_lobe's per-pixel terms (n, v unit; n.v clamped)."""
+    axis = ops.normalize(axis)
+    lam = ops.clamp(sharpness, SHARPNESS_MIN, SHARPNESS_MAX)
+    amplitude = ops.vmax(amplitude, ops.vconst((0.0, 0.0, 0.0)))
+    nu = ops.mul(lam, 0.5)
+    along_z = ops.dot(axis, z)
+    tangent = ops.vsub(axis, ops.vscale(z, along_z))  # the SG axis in the tangent plane at z
+    nu_facing = ops.mul(nu, ops.maximum(along_z, 0.0))
+    total = factor = None
+    for amplitude_scale, sharpness_scale in GLOSSY_NDF_LOBES:
+        lam_k, mu_k = ops.mul(lam_d, sharpness_scale), ops.mul(mu_d, amplitude_scale)
+        lam_in = ops.mul(lam_k, 1.0 / 8.0)  # along the plane of v and l
+        lam_across = ops.div(lam_k, ops.mul(ops.mul(ndotv, ndotv), 8.0))
+        d_in = ops.add(lam_in, nu_facing)
+        peak = z
+        for _ in range(LOCAL_WARP_ITERATIONS):
+            across = ops.normalize(ops.cross(v, peak))
+            d_across = ops.add(lam_across, nu_facing)
+            offset = ops.mul(ops.mul(nu, ops.dot(axis, across)), ops.sub(ops.div(1.0, d_across), ops.div(1.0, d_in)))
+            step = ops.vadd(ops.vscale(tangent, ops.div(nu, d_in)), ops.vscale(across, offset))
+            peak = ops.normalize(ops.vadd(z, step))
+            half = ops.normalize(ops.vadd(peak, v))
+            vdoth = ops.clamp(ops.dot(v, half), NDOTV_MIN, 1.0)
+            lam_across = ops.div(lam_k, ops.mul(ops.mul(vdoth, vdoth), 8.0))
+        nu_cosine = ops.mul(nu, ops.maximum(ops.dot(axis, peak), 0.0))
+        to_normal, to_axis = ops.vsub(n, half), ops.vsub(axis, peak)
+        exponent = ops.sub(ops.mul(ops.mul(lam_k, -0.5), ops.dot(to_normal, to_normal)),
+                           ops.mul(nu, ops.dot(to_axis, to_axis)))
+        width = ops.div(math.pi, ops.sqrt(ops.mul(ops.add(lam_across, nu_cosine), ops.add(lam_in, nu_cosine))))
+        above = horizon_fraction(ops, ops.dot(n, peak), ops.add(lam_in, nu_cosine))
+        term = ops.mul(ops.mul(ops.mul(mu_k, width), above), ops.exp(exponent))
+        total = term if total is None else ops.add(total, term)
+        if factor is None:
+            factor = microfacet_factor(ops, n, v, peak, half, ndotv, alpha, f0)
+    return {"glossy": ops.vmul(ops.vscale(amplitude, total), factor)}
 
 
 def sg_value(ops, direction, axis, sharpness, amplitude):
@@ -212,7 +242,7 @@ def convolve_sh(ops, lobe, lookup):
     band_weights = [ops.const(0.0)] * 3  # sum over the NDF lobes of integral x Legendre ratio, per band
     for lam_x, lam_y, mu in lobe["lobes"]:
         sharpness = ops.mul(ops.sqrt(ops.mul(lam_x, lam_y)), 2.0)
-        integral = ops.div(ops.mul(mu, 2.0 * math.pi), sharpness)  # = mu pi / sqrt(lam_x lam_y), as convolve
+        integral = ops.div(ops.mul(mu, 2.0 * math.pi), sharpness)  # = mu pi / sqrt(lam_x lam_y), as sg_asg_convolve
         band_weights = [ops.add(w, ops.mul(integral, k)) for w, k in zip(band_weights, sh_band_ratios(ops, sharpness))]
     radiance = ops.vconst((0.0, 0.0, 0.0))
     for j, (band, basis) in enumerate(zip(SH_L2_BAND, sh_l2_basis(ops, lobe["z"]))):
@@ -232,22 +262,29 @@ def shade(ops, lookup, normal, view, roughness, f0, albedo, sg_count: int, iwev_
     to [0, 1] by the renderers, and interpolating log-sharpness is the better blend anyway.
     env_sgs: [(axis, sharpness, rgb amplitude)] global constants of the environment."""
     lobe = warped_lobe(ops, normal, view, roughness)
+    pixel = {key: lobe[key] for key in ("n", "v", "z", "ndotv", "lam_d", "mu_d", "alpha")}
+
+    def glossy_of(axis, sharpness, amplitude):  # one Group node per SG in the node backend
+        return ops.call("glossy SG", glossy_sg, **pixel, f0=f0, axis=axis, sharpness=sharpness,
+                        amplitude=amplitude)["glossy"]
+
     black = ops.vconst((0.0, 0.0, 0.0))
     glossy = black
     for j in range(sg_count):
         axis, encoded = lookup("sg", j)
         amplitude, _ = lookup("amp", j)
-        glossy = ops.vadd(glossy, convolve(ops, lobe, axis, decode_sharpness(ops, encoded), amplitude))
+        glossy = ops.vadd(glossy, glossy_of(axis, decode_sharpness(ops, encoded), amplitude))
         ops.barrier(glossy)
     if sh_count:
-        glossy = convolve_sh(ops, lobe, lookup)
-    factor = microfacet_factor(ops, lobe, f0)
-    glossy = ops.vmul(glossy, factor)
+        z = lobe["z"]
+        factor = microfacet_factor(ops, lobe["n"], lobe["v"], z, ops.normalize(ops.vadd(z, lobe["v"])),
+                                   lobe["ndotv"], lobe["alpha"], f0)
+        glossy = ops.vmul(convolve_sh(ops, lobe, lookup), factor)
     environment = black
     if env_sgs and iwev_count:
         env = black
         for axis, sharpness, amplitude in env_sgs:
-            env = ops.vadd(env, convolve(ops, lobe, ops.vconst(axis), ops.const(sharpness), ops.vconst(amplitude)))
+            env = ops.vadd(env, glossy_of(ops.vconst(axis), ops.const(sharpness), ops.vconst(amplitude)))
         visibility = black
         for j in range(iwev_count):
             axis, encoded = lookup("iwev", j)
@@ -255,7 +292,7 @@ def shade(ops, lookup, normal, view, roughness, f0, albedo, sg_count: int, iwev_
             visibility = ops.vadd(visibility, sg_value(ops, lobe["z"], axis, decode_sharpness(ops, encoded), amplitude))
             ops.barrier(visibility)
         visibility = ops.vmax(ops.vmin(visibility, ops.vconst((1.0, 1.0, 1.0))), black)  # W_E in [0, 1]
-        environment = ops.vmul(ops.vmul(env, factor), visibility)
+        environment = ops.vmul(env, visibility)
     diffuse = black
     if has_irradiance:
         irradiance, _ = lookup("irradiance", 0)

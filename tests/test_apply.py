@@ -1,5 +1,6 @@
 """Apply stage: the node group against its numpy reference in Cycles, write-back, Remove SG Bake, re-bake."""
 import json
+import re
 
 import bpy  # noqa: I001
 import bmesh
@@ -164,6 +165,7 @@ def test_write_back_remove_restores_everything_and_rebake_does_not_pile_up(tmp_p
         info = apply_stage(scene, plan, tmp_path)
         counts.append((len(bpy.data.images), len(bpy.data.node_groups), len(bpy.data.materials)))
     assert counts[0] == counts[1]  # a second bake replaces, never piles up
+    assert f"{GROUP_NAME} / glossy SG" in bpy.data.node_groups  # built once, instanced per SG
     assert info["materials"] == ["Glossy (SG bake)"] and ball.material_slots[0].material.name == "Glossy (SG bake)"
     assert floor.material_slots[0].material == rough  # rough: not baked
     assert bpy.data.images[IMAGE_NAME].packed_file is not None
@@ -200,7 +202,9 @@ def test_write_back_remove_restores_everything_and_rebake_does_not_pile_up(tmp_p
     assert {m.name: _material_fingerprint(m) for m in (glossy, rough)} == before
     assert {m.name: mesh_fingerprint(m) for m in (ball.data, floor.data)} == meshes_before
     assert not glossy.use_fake_user and "Glossy (SG bake)" not in bpy.data.materials
-    assert GROUP_NAME not in bpy.data.node_groups and IMAGE_NAME not in bpy.data.images
+    baked_group = re.compile(re.escape(GROUP_NAME) + r"( \(.*\))?( / .*)?$")  # and its nested groups
+    assert not [g.name for g in bpy.data.node_groups if baked_group.match(g.name)]
+    assert IMAGE_NAME not in bpy.data.images
     assert BAKE_RECORD_KEY not in scene
 
 

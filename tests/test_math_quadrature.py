@@ -50,16 +50,18 @@ def test_thesis_convolution_eq24_is_worse_than_xu():
     assert printed > 2 * ours, (printed, ours)
 
 
-@pytest.mark.parametrize("roughness, tol", [(m.ROUGHNESS_MIN, 0.045), (0.3, 0.45), (0.5, 0.48)])
+@pytest.mark.parametrize("roughness, tol", [(m.ROUGHNESS_MIN, 0.03), (0.3, 0.3), (0.5, 0.43)])
 def test_glossy_lobe_accuracy(roughness, tol):
+    """sg_glossy against quadrature down to n.v = 0.1 (measured when adopted: 0.022 / 0.23 / 0.39 of the peak; the
+    paper's form 0.038 / 0.39 / 0.41)."""
     (r,) = cm.check_glossy(sharpness=(10.0, 1e3), roughness=(roughness,), ndotv=(1.0, 0.5, 0.1))
     assert r.max_rel_error < tol, r.worst_case
 
 
 def test_two_lobe_ndf_beats_the_single_sg_on_glossy_reflection(monkeypatch):
-    """GGX_NDF_TWO_LOBES against quadrature of the exact GGX BRDF, away from grazing: at most 0.6x the error of the
-    single SG the bake uses (measured when adopted: 0.03-0.13 against 0.13-0.27 of the peak)."""
-    grid = dict(sharpness=(30.0, 100.0, 1e3), ndotv=(1.0, 0.5), min_points=200_000)
+    """GGX_NDF_TWO_LOBES against quadrature of the exact GGX BRDF, away from grazing, in the paper's form (the warp
+    about z): at most 0.6x the single SG's error (measured: 0.03-0.13 against 0.13-0.27 of the peak)."""
+    grid = dict(sharpness=(30.0, 100.0, 1e3), ndotv=(1.0, 0.5), min_points=200_000, glossy=m.sg_glossy_mirror_warp)
     for roughness in (0.2, 0.5):
         (one,) = cm.check_glossy(roughness=(roughness,), **grid)
         with monkeypatch.context() as patch:
@@ -149,7 +151,7 @@ def test_sh_glossy_lobe_matches_quadrature_of_the_warped_ndf(roughness, tol):
 
 
 def test_local_warp_glossy_beats_the_warp_at_the_mirror_direction():
-    """sg_glossy_local_warp (Laplace about the SG x NDF peak, the warp's Jacobian taken there, two NDF lobes, horizon
+    """sg_glossy (Laplace about the SG x NDF peak, the warp's Jacobian taken there, two NDF lobes, horizon
     share) against the paper's form, check_glossy's cases: at n.v >= 0.5 within 6 % of the peak where the paper's
     form is off by 15 % or more, and at n.v = 0.2 a clearly smaller worst case (measured when written, SG sharpness
     3-1000: 0.20-0.27 -> 0.03-0.05 of the peak at n.v >= 0.5; 0.20/0.31/0.78 -> 0.08/0.18/0.45 at n.v = 0.2,
@@ -157,10 +159,10 @@ def test_local_warp_glossy_beats_the_warp_at_the_mirror_direction():
     for roughness in (0.2, 0.3, 0.5):
         grid = dict(roughness=(roughness,), sharpness=(10.0, 100.0), min_points=100_000)
         (paper,), (local,) = (cm.check_glossy(ndotv=(1.0, 0.5), glossy=f, **grid)
-                              for f in (m.sg_glossy, m.sg_glossy_local_warp))
+                              for f in (m.sg_glossy_mirror_warp, m.sg_glossy))
         assert local.max_rel_error < 0.06 < 0.15 < paper.max_rel_error, (roughness, local, paper)
         (paper,), (local,) = (cm.check_glossy(ndotv=(0.2,), glossy=f, **grid)
-                              for f in (m.sg_glossy, m.sg_glossy_local_warp))
+                              for f in (m.sg_glossy_mirror_warp, m.sg_glossy))
         assert local.max_rel_error < 0.7 * paper.max_rel_error, (roughness, local, paper)
 
 
@@ -176,7 +178,7 @@ def test_local_warp_follows_the_lobe_above_the_mirror_direction_at_grazing():
     up = m.safe_normalize(n - (n @ z) * z)
     axis = np.cos(np.radians(30)) * z + np.sin(np.radians(30)) * up
     ref = np.sum(m.sg_eval(d, axis, 45.0, np.ones(1))[:, 0] * m.ggx_brdf_cos(d, v, n, 0.4, np.array([0.8]))[:, 0] * w)
-    paper = m.sg_glossy(axis, np.float64(45.0), np.ones(1), n, v, np.float64(0.4), np.array([0.8]))[0]
-    local = m.sg_glossy_local_warp(axis, np.float64(45.0), np.ones(1), n, v, np.float64(0.4), np.array([0.8]))[0]
+    paper = m.sg_glossy_mirror_warp(axis, np.float64(45.0), np.ones(1), n, v, np.float64(0.4), np.array([0.8]))[0]
+    local = m.sg_glossy(axis, np.float64(45.0), np.ones(1), n, v, np.float64(0.4), np.array([0.8]))[0]
     assert paper < 0.6 * ref, (paper, ref)
     assert abs(local / ref - 1) < 0.15, (local, ref)

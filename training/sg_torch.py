@@ -17,7 +17,11 @@ from shaders.sg_math import (  # the one place the clamps are defined
     AXIS_EPS,
     CLAMPED_COSINE_LEGENDRE,
     GGX_NDF_LOBES,
+    GLOSSY_NDF_LOBES,
+    HORIZON_EXPONENT_MAX,
+    HORIZON_LOGISTIC,
     IRRADIANCE_SERIES_MAX_SHARPNESS,
+    LOCAL_WARP_ITERATIONS,
     NDOTV_MIN,
     ROUGHNESS_MIN,
     SHARPNESS_MAX,
@@ -31,7 +35,8 @@ __all__ = [
     "dot", "safe_normalize", "orthonormal_tangents", "one_minus_exp_neg2x_over_x",
     "sg_eval", "sg_integral", "sg_inner_product", "clamp_roughness", "ggx_alpha", "ndf_sg", "ASG",
     "reflection_frame", "warp_ndf_to_asg", "asg_eval", "sg_asg_convolve", "fresnel_schlick",
-    "smith_lambda_ggx", "smith_g2_ggx", "ggx_ndf", "sg_glossy", "bessel_i_scaled",
+    "smith_lambda_ggx", "smith_g2_ggx", "ggx_ndf", "microfacet_factor", "normalize_or_zero", "horizon_fraction",
+    "sg_glossy", "sg_glossy_mirror_warp", "bessel_i_scaled",
     "sg_irradiance_series", "sg_irradiance_fitted", "sg_irradiance", "sanitize_sg_params", "sg_sum_eval",
 ]
 
@@ -156,16 +161,61 @@ def ggx_ndf(ndoth, alpha):
     return a2 / (math.pi * ((c * c) * (a2 - 1) + 1) ** 2)
 
 
-def sg_glossy(axis, sharpness, amplitude, normal, view, roughness, f0):
+def sg_glossy_mirror_warp(axis, sharpness, amplitude, normal, view, roughness, f0):
     asgs = [warp_ndf_to_asg(normal, view, roughness, lobe) for lobe in GGX_NDF_LOBES]
     conv = sum(sg_asg_convolve(axis, sharpness, amplitude, asg) for asg in asgs)
-    asg = asgs[0]
+    z = asgs[0].z
     ndotv = torch.clamp(dot(normal, view), NDOTV_MIN, 1)
-    ndotl = torch.clamp(dot(normal, asg.z), NDOTV_MIN, 1)
-    h = safe_normalize(asg.z + view)
-    f = fresnel_schlick(f0, dot(view, h))
+    return conv * microfacet_factor(normal, view, z, safe_normalize(z + view), ndotv, roughness, f0)
+
+
+def microfacet_factor(normal, view, light, half, ndotv, roughness, f0):
+    ndotl = torch.clamp(dot(normal, light), NDOTV_MIN, 1)
     g = smith_g2_ggx(ndotl, ndotv, ggx_alpha(roughness))
-    return conv * f * (g / (4 * ndotv)).unsqueeze(-1)
+    return fresnel_schlick(f0, dot(view, half)) * (g / (4 * ndotv)).unsqueeze(-1)
+
+
+def normalize_or_zero(v):
+    return v / torch.sqrt(torch.clamp_min(dot(v, v), TINY_SQUARED_LENGTH)).unsqueeze(-1)
+
+
+def horizon_fraction(elevation, sharpness):
+    exponent = -HORIZON_LOGISTIC * elevation * torch.sqrt(2 * sharpness)
+    return 1 / (1 + torch.exp(torch.clamp_max(exponent, HORIZON_EXPONENT_MAX)))
+
+
+def sg_glossy(axis, sharpness, amplitude, normal, view, roughness, f0, lobes=GLOSSY_NDF_LOBES,
+              iterations=LOCAL_WARP_ITERATIONS):
+    z, _, _, ndotv = reflection_frame(normal, view)
+    _, lam_d, mu_d = ndf_sg(normal, roughness)
+    nu = sharpness / 2
+    along_z = dot(axis, z)
+    tangent = axis - along_z.unsqueeze(-1) * z
+    facing = torch.clamp_min(along_z, 0)
+    total, factor = 0.0, None
+    for amplitude_scale, sharpness_scale in lobes:
+        lam, mu = lam_d * sharpness_scale, mu_d * amplitude_scale
+        lam_in = lam / 8
+        lam_across = lam / (8 * ndotv**2)
+        peak = z
+        for _ in range(iterations):
+            across = normalize_or_zero(torch.linalg.cross(torch.broadcast_to(view, peak.shape), peak, dim=-1))
+            d_in, d_across = lam_in + nu * facing, lam_across + nu * facing
+            step = (nu / d_in).unsqueeze(-1) * tangent + \
+                (nu * dot(axis, across) * (1 / d_across - 1 / d_in)).unsqueeze(-1) * across
+            peak = normalize_or_zero(z + step)
+            half = normalize_or_zero(peak + view)
+            vdoth = torch.clamp(dot(view, half), NDOTV_MIN, 1)
+            lam_across = lam / (8 * vdoth**2)
+        cosine = torch.clamp_min(dot(axis, peak), 0)
+        exponent = -0.5 * lam * dot(normal - half, normal - half) - 0.5 * sharpness * dot(axis - peak, axis - peak)
+        width = math.pi / torch.sqrt((lam_across + nu * cosine) * (lam_in + nu * cosine))
+        above = horizon_fraction(dot(normal, peak), lam_in + nu * cosine)
+        integral = amplitude * (mu * width * above * torch.exp(exponent)).unsqueeze(-1)
+        if factor is None:
+            factor = microfacet_factor(normal, view, peak, half, ndotv, roughness, f0)
+        total = total + integral * factor
+    return total
 
 
 def bessel_i_scaled(x):
