@@ -25,7 +25,7 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.bake_report import update_report
     from ..shaders.exr_io import write_exr
     from ..shaders.lightfield_tiles import read_images
-    from ..shaders.node_group import GROUP_NAME, VERSION_KEY, SGTextureLayout, build_node_group
+    from ..shaders.node_group import GROUP_NAME, VERSION_KEY, SGTextureLayout, build_node_group, flattened_node_count
     from ..shaders.octahedral import pixel_directions, pixel_solid_angles
     from ..shaders.sg_math import CLAMPED_COSINE_LEGENDRE, sg_irradiance
     from ..shaders.sg_shading import SH_L2_BAND, NumpyOps, encode_sharpness, sh_l2_basis
@@ -41,7 +41,7 @@ except ImportError:  # bpy as a module with the repository on sys.path
     from shaders.bake_report import update_report
     from shaders.exr_io import write_exr
     from shaders.lightfield_tiles import read_images
-    from shaders.node_group import GROUP_NAME, VERSION_KEY, SGTextureLayout, build_node_group
+    from shaders.node_group import GROUP_NAME, VERSION_KEY, SGTextureLayout, build_node_group, flattened_node_count
     from shaders.octahedral import pixel_directions, pixel_solid_angles
     from shaders.sg_math import CLAMPED_COSINE_LEGENDRE, sg_irradiance
     from shaders.sg_shading import SH_L2_BAND, NumpyOps, encode_sharpness, sh_l2_basis
@@ -246,8 +246,8 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
     sg_counts = {m.name: evaluated_count(m.sg_count) for o in plan.baked_objects for m in o.materials if m.glossy}
     most = groups.get(layout.sg_count)
     info = {"materials": sorted(baked_materials), "node_group": most.name if most else None,
-            "nodes": len(most.nodes) if most else 0,
-            "node_groups": {g.name: len(g.nodes) for g in groups.values()}, "sg_counts": sg_counts,
+            "nodes": flattened_node_count(most) if most else 0,  # nested groups expanded, as renderers compile it
+            "node_groups": {g.name: flattened_node_count(g) for g in groups.values()}, "sg_counts": sg_counts,
             "sg_evaluations_saved": None if layout.sh_count else
             round(1 - sum(sg_counts.values()) / max(layout.sg_count * len(sg_counts), 1), 3),
             "encoder": "sh_l2" if layout.sh_count else "sg",
@@ -261,7 +261,8 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
 def _remove_unused_groups():
     """Remove the bake's node groups nothing uses; a nested group ('<group> / ...') is freed by removing its parent."""
     while True:
-        unused = [g for g in bpy.data.node_groups if VERSION_KEY in g and g.name.startswith(GROUP_NAME) and g.users == 0]
+        unused = [g for g in bpy.data.node_groups
+                  if VERSION_KEY in g and g.name.startswith(GROUP_NAME) and g.users == 0]
         if not unused:
             return
         for group in unused:

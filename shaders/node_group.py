@@ -224,6 +224,12 @@ class NodeOps:
         return self._vmath("MINIMUM", a, b)
 
 
+def flattened_node_count(tree) -> int:
+    """Nodes of `tree` with every nested group expanded: the size of the graph the renderers compile."""
+    return sum(flattened_node_count(node.node_tree) if node.bl_idname == "ShaderNodeGroup" and node.node_tree
+               else 1 for node in tree.nodes)
+
+
 def new_or_cleared_group(name: str):
     """The shader node group `name`, emptied (its users keep it), or a new one."""
     import bpy
@@ -271,15 +277,15 @@ def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GRO
     corner_inputs = {f"corner {i}": corner for i, (corner, _) in enumerate(corners)}
     corner_inputs.update({f"weight {i}": weight for i, (_, weight) in enumerate(corners)})
 
-    def bilinear_tile(tile_ops, offset, **corner_inputs):
+    def bilinear_tile(tile_ops, offset, **corner_sockets):
         """The four 'Closest' lookups of the tile at `offset` (column, row), blended: {'colour', 'alpha'}."""
         color_sum = alpha_sum = None
         for i in range(len(corners)):
-            shifted = tile_ops._vmath("ADD", corner_inputs[f"corner {i}"], offset)
+            shifted = tile_ops._vmath("ADD", corner_sockets[f"corner {i}"], offset)
             uv = tile_ops._vmath("MULTIPLY", shifted, (1.0 / columns, 1.0 / rows, 1.0))
             texture = tile_ops._node("ShaderNodeTexImage", image=image, interpolation="Closest", extension="EXTEND")
             tile_ops.tree.links.new(uv, texture.inputs["Vector"])
-            weight = corner_inputs[f"weight {i}"]
+            weight = corner_sockets[f"weight {i}"]
             color = tile_ops.vscale(texture.outputs["Color"], weight)
             alpha = tile_ops.mul(texture.outputs["Alpha"], weight)
             color_sum = color if color_sum is None else tile_ops.vadd(color_sum, color)

@@ -11,12 +11,14 @@ from blender_addon.apply import BAKE_RECORD_KEY, IMAGE_NAME, apply_stage, remove
 from blender_addon.capture import capture
 from blender_addon.render import quiet_stdout, render_stage
 from blender_addon.scene_analysis import active_scene, build_plan
+from shaders import sg_math as m
 from shaders.bake_plan import BakeSettings
 from shaders.exr_io import read_exr, write_exr
-from shaders.node_group import GROUP_NAME, SGTextureLayout, build_node_group
+from shaders.node_group import GROUP_NAME, SGTextureLayout, build_node_group, flattened_node_count
 from shaders.sg_shading import NumpyOps, encode_sharpness, shade
 from shaders.sg_textures import pack_tiles
 from tests.scene_helpers import material, mesh_fingerprint, mesh_object, scene_with, uv_sphere
+from training.train_stage import ENV_SG_COUNT
 
 pytestmark = pytest.mark.slow
 
@@ -116,6 +118,24 @@ def test_node_group_matches_its_numpy_reference_in_cycles(tmp_path):
     cells[("iwev", 0)] = np.concatenate([rng.normal(size=(h, w, 3)), rng.uniform(0, 1, (h, w, 1))], -1)
     cells[("iwev_amp", 0)] = np.concatenate([rng.uniform(0, 1.2, (h, w, 3)), np.zeros((h, w, 1))], -1)
     assert _parity_worst(tmp_path, layout, cells, env_sgs, (0.0, 0.2, 0.6, 1.0), (0.0, 60.0, 89.0)) < 1e-3
+
+
+def test_sixteen_sgs_with_environment_visibility_fit_in_cycles_svm_stack(tmp_path):
+    """The largest group the presets make (16 SGs, 16 IWEV SGs, 16 environment SGs) compiles in Cycles' 255-slot SVM
+    stack and still equals its numpy reference (without the lookup barriers: "out of SVM stack space", black)."""
+    n, iwev, h, w = 16, 16, 4, 4
+    rng = np.random.default_rng(2)
+    layout = SGTextureLayout(n, iwev_count=iwev, has_irradiance=True, atlas_size=(2 * w, 2 * h))
+    env_sgs = [(tuple(m.safe_normalize(rng.normal(size=3))), float(rng.uniform(1, 100)), (1.0, 0.8, 0.6))
+               for _ in range(ENV_SG_COUNT)]
+    cells = {("irradiance", 0): np.concatenate([rng.uniform(0, 3, (h, w, 3)), np.ones((h, w, 1))], -1)}
+    for j in range(n):
+        cells[("sg", j)] = np.concatenate([rng.normal(size=(h, w, 3)), rng.uniform(0.2, 0.8, (h, w, 1))], -1)
+        cells[("amp", j)] = np.concatenate([rng.uniform(0, 5, (h, w, 3)), np.zeros((h, w, 1))], -1)
+    for j in range(iwev):
+        cells[("iwev", j)] = np.concatenate([rng.normal(size=(h, w, 3)), rng.uniform(0, 1, (h, w, 1))], -1)
+        cells[("iwev_amp", j)] = np.concatenate([rng.uniform(0, 0.5, (h, w, 3)), np.zeros((h, w, 1))], -1)
+    assert _parity_worst(tmp_path, layout, cells, env_sgs, (0.3,), (30.0,)) < 1e-3
 
 
 def test_sh_node_group_matches_its_numpy_reference_in_cycles(tmp_path):
@@ -334,8 +354,9 @@ def test_each_material_gets_the_sg_count_its_roughness_needs(tmp_path):
     rougher_group = other.material_slots[0].material.node_tree.nodes["Group"].node_tree
     assert smooth_group.name == GROUP_NAME and rougher_group.name == f"{GROUP_NAME} ({counts['Rougher']} SGs)"
     assert len(rougher_group.nodes) < len(smooth_group.nodes)
-    assert result["sg_counts"] == counts and result["node_groups"] == {
-        smooth_group.name: len(smooth_group.nodes), rougher_group.name: len(rougher_group.nodes)}
+    assert result["sg_counts"] == counts and result["node_groups"] == {  # nested groups expanded in the counts
+        smooth_group.name: flattened_node_count(smooth_group), rougher_group.name: flattened_node_count(rougher_group)}
+    assert result["nodes"] > len(smooth_group.nodes) + 100 * counts["Smooth"]  # each glossy SG group expanded
     assert result["sg_evaluations_saved"] == pytest.approx(1 - sum(counts.values()) / (2 * counts["Smooth"]), abs=1e-3)
     rendered = _render_small(scene, tmp_path / "baked.exr", (0.75, -5, 0))  # both groups shade to finite colours
     assert np.all(np.isfinite(rendered)) and rendered.max() > 0
