@@ -124,25 +124,27 @@ def decode_sharpness(ops, encoded):
                            ops.mul(ops.clamp(encoded, 0.0, 1.0), ops.const(LOG_SHARPNESS_MAX - LOG_SHARPNESS_MIN))))
 
 
-def warped_lobe(ops, normal, view, roughness):
-    """Per-pixel terms shared by every SG: n, v, z (the mirror direction), x, n.v, alpha, the NDF SG's sharpness and
-    amplitude (lam_d, mu_d), and per lobe of GGX_NDF_LOBES warped about z (sharpness across the plane of
-    incidence, sharpness along it, amplitude) for the SH baseline."""
+def pixel_terms(ops, normal, view, roughness):
+    """Per-pixel terms shared by every SG: n, v (unit), z (the mirror direction), n.v (clamped), alpha, and the NDF
+    SG's sharpness and amplitude (lam_d, mu_d)."""
     n = ops.normalize(normal)
     v = ops.normalize(view)
     r = ops.clamp(roughness, ROUGHNESS_MIN, 1.0)
     alpha = ops.mul(r, r)
     a2 = ops.mul(alpha, alpha)
-    lam_d = ops.div(ops.const(2.0), a2)
-    mu_d = ops.div(ops.const(1.0 / math.pi), a2)
     ndotv = ops.clamp(ops.dot(n, v), NDOTV_MIN, 1.0)
     z = ops.normalize(ops.vsub(ops.vscale(n, ops.mul(ndotv, ops.const(2.0))), v))
-    x = ops.normalize(ops.cross(n, z))
-    lam_x = ops.div(lam_d, ops.mul(ops.const(8.0), ops.mul(ndotv, ndotv)))
-    lam_y = ops.mul(lam_d, ops.const(1.0 / 8.0))
-    lobes = [(ops.mul(lam_x, b), ops.mul(lam_y, b), ops.mul(mu_d, a)) for a, b in GGX_NDF_LOBES]
-    return {"n": n, "v": v, "z": z, "x": x, "ndotv": ndotv, "lobes": lobes, "alpha": alpha, "lam_d": lam_d,
-            "mu_d": mu_d}
+    return {"n": n, "v": v, "z": z, "ndotv": ndotv, "alpha": alpha, "lam_d": ops.div(ops.const(2.0), a2),
+            "mu_d": ops.div(ops.const(1.0 / math.pi), a2)}
+
+
+def mirror_warped_lobes(ops, pixel):
+    """The NDF lobes of GGX_NDF_LOBES warped about z (Xu et al. 2013), as the SH baseline shades: per lobe
+    (sharpness across the plane of incidence, sharpness along it, amplitude)."""
+    ndotv = pixel["ndotv"]
+    lam_x = ops.div(pixel["lam_d"], ops.mul(ops.const(8.0), ops.mul(ndotv, ndotv)))
+    lam_y = ops.mul(pixel["lam_d"], ops.const(1.0 / 8.0))
+    return [(ops.mul(lam_x, b), ops.mul(lam_y, b), ops.mul(pixel["mu_d"], a)) for a, b in GGX_NDF_LOBES]
 
 
 def microfacet_factor(ops, n, v, light, half, ndotv, alpha, f0):
@@ -170,7 +172,7 @@ def horizon_fraction(ops, elevation, sharpness):
 
 def glossy_sg(ops, n, v, z, ndotv, lam_d, mu_d, alpha, f0, axis, sharpness, amplitude):
     """sg_math.sg_glossy of one SG (axis, sharpness, colour amplitude) step by step: {'glossy': colour}. The
-    arguments after f0 are the SG's; the others are warped_lobe's per-pixel terms (n, v unit; n.v clamped)."""
+    arguments after f0 are the SG's; the others are pixel_terms'."""
     axis = ops.normalize(axis)
     lam = ops.clamp(sharpness, SHARPNESS_MIN, SHARPNESS_MAX)
     amplitude = ops.vmax(amplitude, ops.vconst((0.0, 0.0, 0.0)))
@@ -236,16 +238,16 @@ def sh_band_ratios(ops, sharpness):
     return ops.const(1.0), k1, ops.sub(1.0, ops.div(ops.mul(k1, 3.0), sharpness))
 
 
-def convolve_sh(ops, lobe, lookup):
+def convolve_sh(ops, pixel, lookup):
     """Radiance given by SH L2 coefficients (lookup('sh', j) -> (colour, _)) integrated against the warped NDF:
     >= 0. Each lookup waits for the sum before it (the node backend's barrier, as for the SGs)."""
     band_weights = [ops.const(0.0)] * 3  # sum over the NDF lobes of integral x Legendre ratio, per band
-    for lam_x, lam_y, mu in lobe["lobes"]:
+    for lam_x, lam_y, mu in mirror_warped_lobes(ops, pixel):
         sharpness = ops.mul(ops.sqrt(ops.mul(lam_x, lam_y)), 2.0)
         integral = ops.div(ops.mul(mu, 2.0 * math.pi), sharpness)  # = mu pi / sqrt(lam_x lam_y), as sg_asg_convolve
         band_weights = [ops.add(w, ops.mul(integral, k)) for w, k in zip(band_weights, sh_band_ratios(ops, sharpness))]
     radiance = ops.vconst((0.0, 0.0, 0.0))
-    for j, (band, basis) in enumerate(zip(SH_L2_BAND, sh_l2_basis(ops, lobe["z"]))):
+    for j, (band, basis) in enumerate(zip(SH_L2_BAND, sh_l2_basis(ops, pixel["z"]))):
         radiance = ops.vadd(radiance, ops.vscale(lookup("sh", j)[0], ops.mul(band_weights[band], basis)))
         ops.barrier(ops.vmax(radiance, ops.vconst((0.0, 0.0, 0.0))))
     return ops.vmax(radiance, ops.vconst((0.0, 0.0, 0.0)))
@@ -261,8 +263,7 @@ def shade(ops, lookup, normal, view, roughness, f0, albedo, sg_count: int, iwev_
     Sharpness travels in the alpha channel log-encoded to [0, 1] (encode_sharpness): image alpha is clamped
     to [0, 1] by the renderers, and interpolating log-sharpness is the better blend anyway.
     env_sgs: [(axis, sharpness, rgb amplitude)] global constants of the environment."""
-    lobe = warped_lobe(ops, normal, view, roughness)
-    pixel = {key: lobe[key] for key in ("n", "v", "z", "ndotv", "lam_d", "mu_d", "alpha")}
+    pixel = pixel_terms(ops, normal, view, roughness)
 
     def glossy_of(axis, sharpness, amplitude):  # one Group node per SG in the node backend
         return ops.call("glossy SG", glossy_sg, **pixel, f0=f0, axis=axis, sharpness=sharpness,
@@ -276,10 +277,10 @@ def shade(ops, lookup, normal, view, roughness, f0, albedo, sg_count: int, iwev_
         glossy = ops.vadd(glossy, glossy_of(axis, decode_sharpness(ops, encoded), amplitude))
         ops.barrier(glossy)
     if sh_count:
-        z = lobe["z"]
-        factor = microfacet_factor(ops, lobe["n"], lobe["v"], z, ops.normalize(ops.vadd(z, lobe["v"])),
-                                   lobe["ndotv"], lobe["alpha"], f0)
-        glossy = ops.vmul(convolve_sh(ops, lobe, lookup), factor)
+        z = pixel["z"]
+        factor = microfacet_factor(ops, pixel["n"], pixel["v"], z, ops.normalize(ops.vadd(z, pixel["v"])),
+                                   pixel["ndotv"], pixel["alpha"], f0)
+        glossy = ops.vmul(convolve_sh(ops, pixel, lookup), factor)
     environment = black
     if env_sgs and iwev_count:
         env = black
@@ -289,7 +290,7 @@ def shade(ops, lookup, normal, view, roughness, f0, albedo, sg_count: int, iwev_
         for j in range(iwev_count):
             axis, encoded = lookup("iwev", j)
             amplitude, _ = lookup("iwev_amp", j)
-            visibility = ops.vadd(visibility, sg_value(ops, lobe["z"], axis, decode_sharpness(ops, encoded), amplitude))
+            visibility = ops.vadd(visibility, sg_value(ops, pixel["z"], axis, decode_sharpness(ops, encoded), amplitude))
             ops.barrier(visibility)
         visibility = ops.vmax(ops.vmin(visibility, ops.vconst((1.0, 1.0, 1.0))), black)  # W_E in [0, 1]
         environment = ops.vmul(env, visibility)

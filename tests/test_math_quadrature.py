@@ -129,7 +129,7 @@ def test_sh_glossy_lobe_matches_quadrature_of_the_warped_ndf(roughness, tol):
     positive sky, normal to grazing incidence (measured when adopted: 0.005 %, 0.4 %, 2.6 % at roughness 0.1, 0.3,
     0.5)."""
     from shaders.quadrature import fibonacci_sphere
-    from shaders.sg_shading import NumpyOps, convolve_sh, warped_lobe
+    from shaders.sg_shading import NumpyOps, convolve_sh, mirror_warped_lobes, pixel_terms
     from training.baselines import sh_basis
 
     d, w = fibonacci_sphere(400_000)
@@ -141,10 +141,10 @@ def test_sh_glossy_lobe_matches_quadrature_of_the_warped_ndf(roughness, tol):
     view = np.array([0.0, 0.0, 1.0])
     for theta in (0.0, 30.0, 60.0, 80.0):
         normal = np.array([np.sin(np.radians(theta)), 0.0, np.cos(np.radians(theta))])
-        lobe = warped_lobe(NumpyOps(), normal, view, np.float64(roughness))
-        got = convolve_sh(NumpyOps(), lobe, lambda kind, j: (coefficients[j], None))
-        isotropic = sum(mu * np.exp(2 * np.sqrt(lam_x * lam_y) * (d @ lobe["z"] - 1))  # integral mu pi / sqrt(..)
-                        for lam_x, lam_y, mu in lobe["lobes"])
+        pixel = pixel_terms(NumpyOps(), normal, view, np.float64(roughness))
+        got = convolve_sh(NumpyOps(), pixel, lambda kind, j: (coefficients[j], None))
+        isotropic = sum(mu * np.exp(2 * np.sqrt(lam_x * lam_y) * (d @ pixel["z"] - 1))  # integral mu pi / sqrt(..)
+                        for lam_x, lam_y, mu in mirror_warped_lobes(NumpyOps(), pixel))
         np.testing.assert_allclose(got, (isotropic[:, None] * radiance * w[:, None]).sum(0), rtol=1e-3)
         warped = sum(m.asg_eval(d, m.warp_ndf_to_asg(normal, view, roughness, l)) for l in m.GGX_NDF_LOBES)
         np.testing.assert_allclose(got, (warped[:, None] * radiance * w[:, None]).sum(0), rtol=tol)
