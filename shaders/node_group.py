@@ -105,9 +105,9 @@ class NodeOps:
 
     def call(self, name, function, **inputs):
         """function(ops, **inputs) -> {output: value} as one Group node. The nested group `<tree name> / name` is
-        built on the first call and instanced after that: bpy re-checks the whole tree for every node and link it
-        adds, so building one flat group takes time quadratic in its size (measured: 0.4 s for 500 Math nodes,
-        18 s for 2000), while the renderers flatten nested groups back into the same graph."""
+        built on the first call and instanced after that: each node and link bpy adds costs time that grows with the
+        tree's size, so one flat group takes time quadratic in its size (measured: 0.4 s for 500 Math nodes, 18 s
+        for 2000), while the renderers flatten nested groups back into the same graph."""
         if name not in self.subgroups:
             self.subgroups[name] = self._build_subgroup(f"{self.tree.name} / {name}", function, inputs)
         node = self._node("ShaderNodeGroup", node_tree=self.subgroups[name])
