@@ -152,6 +152,17 @@ def load_scene(ns):
     return scene
 
 
+def _shaded_error_summary(lightfield_metrics: dict) -> str:
+    """'; glossy error 0.08 (CNN amplitudes 0.17)': the mean over materials of the error of the node group's
+    glossy against the exact reflection of the light field, after and before the amplitude refit."""
+    after = lightfield_metrics.get("shaded_error", {})
+    before = lightfield_metrics.get("amplitude_refit", {}).get("shaded_error_before", {})
+    if not after:
+        return ""
+    text = f"; glossy error {sum(after.values()) / len(after):.4f}"
+    return text + (f" (CNN amplitudes {sum(before.values()) / len(before):.4f})" if before else "")
+
+
 def stage_summary(stage: str, result, plan) -> tuple[str, list]:
     """One line per finished stage for people (and the JSON 'stage' event)."""
     if stage == "capture":
@@ -169,7 +180,8 @@ def stage_summary(stage: str, result, plan) -> tuple[str, list]:
         lf = metrics.get("lightfield", {})
         return (f"{plan.max_sg_count} SGs; light field loss {lf.get('loss', float('nan')):.4f}, "
                 f"RMSE {lf.get('rmse', float('nan')):.4f}"
-                + (f", midpoint RMSE {lf['midpoint']['rmse']:.4f}" if "midpoint" in lf else "")), []
+                + (f", midpoint RMSE {lf['midpoint']['rmse']:.4f}" if "midpoint" in lf else "")
+                + _shaded_error_summary(lf)), []
     if stage == "evaluate":
         eevee = result.get("eevee") or {}
         eevee_text = (f"; EEVEE FLIP {eevee['flip']:.4f}, PSNR {eevee['psnr']:.2f} dB (first render "

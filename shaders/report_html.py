@@ -70,6 +70,14 @@ def write_report_html(out_dir) -> Path:
     rows += [(f"light-field fit {key}", value) for key, value in lightfield.items() if not isinstance(value, dict)]
     if "midpoint" in lightfield:
         rows.append(("held-out midpoint RMSE", lightfield["midpoint"]["rmse"]))
+    refit = lightfield.get("amplitude_refit", {})
+    for material, error in lightfield.get("shaded_error", {}).items():
+        before = refit.get("shaded_error_before", {}).get(material)
+        rows.append((f"glossy error through the node group, {material}", error if before is None else
+                     f"{error:.4f} (CNN amplitudes {before:.4f})"))
+    if refit:
+        rows.append(("amplitude refit", f"{refit['texels']} texels at roughness >= {refit['min_roughness']} in "
+                                        f"{refit['seconds']:.1f} s"))
     for key, value in rows:
         if value is not None:
             parts.append(f"<tr><th>{esc(key)}</th><td>{esc(str(round(value, 5) if isinstance(value, float) else value))}"

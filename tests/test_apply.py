@@ -336,8 +336,16 @@ def test_each_material_gets_the_sg_count_its_roughness_needs(tmp_path):
 
     capture(scene, plan, tmp_path)
     render_stage(scene, plan, tmp_path)
-    train_stage(tmp_path, plan)
+    metrics = train_stage(tmp_path, plan).metrics["lightfield"]
     atlas, info = read_texel_maps(tmp_path)
+    # amplitudes refitted through the glossy where the lobe spans half a pixel of R = 8 (roughness >= 0.47)
+    refit, shaded = metrics["amplitude_refit"], metrics["shaded_error"]
+    assert refit["min_roughness"] == pytest.approx(0.47, abs=0.01)
+    rougher_texels = int(((channels(atlas, "valid") > 0) & (channels(atlas, "material_id") == next(
+        m["id"] for m in info["materials"] if m["name"] == "Rougher"))).sum())
+    assert refit["texels"] == rougher_texels > 0
+    assert shaded["Smooth"] == refit["shaded_error_before"]["Smooth"]  # too sharp for R = 8: kept as trained
+    assert all(np.isfinite(v) and v >= 0 for v in shaded.values())
     _, _, amplitude, meta = read_sg_texture(tmp_path / "sg_lightfield.exr")
     assert int(meta["sg_count"]) == counts["Smooth"]
     rougher_id = next(m["id"] for m in info["materials"] if m["name"] == "Rougher")

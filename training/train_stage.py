@@ -66,15 +66,47 @@ def fit_environment_sgs(out_dir: Path, plan_hash: str, device: str = "cpu") -> d
     return data_out
 
 
+def _per_texel(atlas, texel_info: dict, texels: np.ndarray, by_name: dict, default, dtype) -> np.ndarray:
+    """(T,) the value by_name gives each texel's material (default for materials it does not name)."""
+    by_id = np.full(len(texel_info["materials"]) + 1, default, dtype)
+    for material in texel_info["materials"]:
+        by_id[material["id"]] = by_name.get(material["name"], default)
+    material_ids = channels(atlas, "material_id")[texels[:, 0], texels[:, 1]].astype(np.int64)
+    return by_id[np.clip(material_ids, 0, len(by_id) - 1)]
+
+
 def texel_lobe_counts(atlas, texel_info: dict, texels: np.ndarray, plan: BakePlan, most: int) -> np.ndarray:
     """(T,) SGs each texel may use: its material's N from the plan (`most` for texels of materials that get no
     SGs: they sit beside glossy texels and bilinear lookups blend them in)."""
     by_name = {m.name: m.sg_count for o in plan.baked_objects for m in o.materials if m.glossy}
-    by_id = np.full(len(texel_info["materials"]) + 1, most, np.int64)
-    for material in texel_info["materials"]:
-        by_id[material["id"]] = by_name.get(material["name"], most)
+    return _per_texel(atlas, texel_info, texels, by_name, most, np.int64)
+
+
+def shaded_errors(images, normals, axis, sharpness, amplitude, atlas, texel_info: dict, texels, roughness) -> dict:
+    """Material name -> relative RMSE between the node group's glossy of the SGs and the exact GGX reflection of
+    the rendered light fields, on views the refit never fits (glossy_refit.shaded_error), over up to
+    ERROR_TEXELS_PER_MATERIAL of the material's texels."""
+    from training.glossy_refit import ERROR_TEXELS_PER_MATERIAL, shaded_error
+
     material_ids = channels(atlas, "material_id")[texels[:, 0], texels[:, 1]].astype(np.int64)
-    return by_id[np.clip(material_ids, 0, len(by_id) - 1)]
+    errors = {}
+    for material in texel_info["materials"]:
+        members = np.flatnonzero(material_ids == material["id"])
+        if len(members):
+            pick = members[np.linspace(0, len(members) - 1, min(len(members), ERROR_TEXELS_PER_MATERIAL)).astype(int)]
+            errors[material["name"]] = round(shaded_error(images[pick], normals[pick], axis[pick], sharpness[pick],
+                                                          amplitude[pick], roughness[pick]), 4)
+    return errors
+
+
+REFIT_PROGRESS_SHARE = 0.9  # of the light field's progress bar: training; the rest: the amplitude refit
+DEFAULT_REFIT_ROUGHNESS = 0.5  # texels of a material the plan does not list (none expected)
+
+
+def texel_roughness(atlas, texel_info: dict, texels: np.ndarray, plan: BakePlan) -> np.ndarray:
+    """(T,) the Principled roughness of each texel's material, as the plan read it."""
+    by_name = {m.name: m.roughness for o in plan.baked_objects for m in o.materials}
+    return _per_texel(atlas, texel_info, texels, by_name, DEFAULT_REFIT_ROUGHNESS, np.float64)
 
 
 def train_stage(out_dir, plan: BakePlan, *, progress=None, should_cancel=lambda: False, **options) -> TrainResult:
@@ -92,6 +124,7 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
     import torch
 
     from training.baselines import bytes_per_texel_fixed_sg, bytes_per_texel_sh_l2, eval_sh, fit_fixed_sg, fit_sh_l2
+    from training.glossy_refit import refit_min_roughness, refit_steps
     from training.sg_fit import (LightFieldData, TrainConfig, Trainer, energy_kept, error_metrics,
                                  midpoint_parameters, pair_indices, reconstruct, unit_midpoint)
 
@@ -136,6 +169,7 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
             counts_key = hashlib.sha256(counts.tobytes()).hexdigest()[:8]
             checkpoint = out_dir / "train" / f"{kind}_{plan.stage_hash('render')}_n{sg_count}_{counts_key}.pt"
             trainer = Trainer(data, config, checkpoint=checkpoint)
+            training_share = REFIT_PROGRESS_SHARE if kind == "lightfield" else 1.0  # of this kind's progress
 
             last_save = time.perf_counter()
             try:
@@ -147,16 +181,42 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
                     if state.stopped_because != "epochs":
                         break
                     fraction = min(state.seconds[-1] / max(config.time_budget_s, 1e-9), 1.0)
-                    yield (k + fraction) / len(kinds), f"{kind}: epoch {state.epoch}, loss {state.losses[-1]:.5f}"
+                    yield (k + training_share * fraction) / len(kinds), \
+                        f"{kind}: epoch {state.epoch}, loss {state.losses[-1]:.5f}"
             finally:
                 trainer.save(trainer.checkpoint)
             axis, sharpness, amplitude = trainer.parameters_numpy()
             epochs, stopped_because = state.epoch, state.stopped_because
             texel_bytes = bytes_per_texel(sg_count, images.shape[-1])
+            if kind == "lightfield":  # amplitudes fitted through the node group's glossy (glossy_refit)
+                refit_start = time.perf_counter()
+                roughness = texel_roughness(atlas, texel_info, texels, plan)
+                before = shaded_errors(images, normals, axis, sharpness, amplitude, atlas, texel_info, texels,
+                                       roughness)
+                least = refit_min_roughness(images.shape[1])
+                chosen = np.flatnonzero(roughness >= least)
+                refit = refit_steps(images[chosen], normals[chosen], axis[chosen], sharpness[chosen],
+                                    amplitude[chosen], roughness[chosen], counts[chosen])
+                while True:
+                    try:
+                        fraction = next(refit)
+                    except StopIteration as finished:
+                        amplitude = amplitude.copy()
+                        amplitude[chosen] = finished.value
+                        break
+                    yield (k + training_share + (1 - training_share) * fraction) / len(kinds), \
+                        f"{kind}: amplitudes refitted through the glossy, {100 * fraction:.0f} %"
+                refit_report = {"seconds": round(time.perf_counter() - refit_start, 2), "texels": len(chosen),
+                                "min_roughness": round(least, 3), "shaded_error_before": before}
         prediction = eval_sh(coefficients, images.shape[1]) if encoder == "sh_l2" else \
             reconstruct(axis, sharpness, amplitude, images.shape[1])
         metrics = error_metrics(prediction, images, normals)
         metrics["energy_kept"] = energy_kept(prediction, images, normals)  # the log loss's bias (sg_fit)
+        if kind == "lightfield" and encoder != "sh_l2":
+            metrics["shaded_error"] = shaded_errors(images, normals, axis, sharpness, amplitude, atlas, texel_info,
+                                                    texels, texel_roughness(atlas, texel_info, texels, plan))
+            if encoder == "cnn":
+                metrics["amplitude_refit"] = refit_report
         picture = f"train_{kind}.png"  # rendered (left) | SG reconstruction (right), 16 texels each
         above = above_horizon_fraction(normals, images.shape[1]).reshape(prediction.shape[:3])[..., None]
         target_mosaic, predicted_mosaic = preview_mosaic(images), preview_mosaic(prediction * above)

@@ -1,0 +1,119 @@
+"""Refitting SG amplitudes through the node group's glossy (training/glossy_refit.py): the solver against scipy's
+NNLS, the quadrature of the reflected light field against the closed form on exact SGs, recovery of amplitudes a
+biased fit lost (on views it never fitted), and the constraints (unused SGs, black texels) the textures rely on."""
+import numpy as np
+import pytest
+from scipy.optimize import nnls
+
+from shaders.octahedral import oct_decode
+from shaders.sg_math import sg_glossy
+from training.glossy_refit import (hemisphere_views, nonnegative_quadratic_minimum, reflected_radiance,
+                                   refit_amplitudes, shaded_error)
+
+R = 16
+
+
+def rendered(axis, sharpness, amplitude, normals, supersample=4):
+    """Pixel-averaged SG sums cut at each texel's horizon, as the light-field render gives them."""
+    offsets = (np.arange(supersample) + 0.5) / supersample
+    c = ((np.arange(R)[:, None] + offsets[None]) / R * 2 - 1).ravel()
+    u, v = np.meshgrid(c, c, indexing="xy")
+    d = oct_decode(np.stack([u, v], -1))
+    lobes = np.exp(sharpness[:, None, None, :] * (np.einsum("rcx,tnx->trcn", d, axis) - 1))
+    lobes *= (np.einsum("rcx,tx->trc", d, normals) > 0)[..., None]
+    image = np.einsum("trcn,tnk->trck", lobes, amplitude)
+    return image.reshape(len(axis), R, supersample, R, supersample, -1).mean(axis=(2, 4))
+
+
+def scene(texels=12, seed=1):
+    rng = np.random.default_rng(seed)
+    normals = np.tile([0.0, 0.0, 1.0], (texels, 1))
+    axis = rng.normal(size=(texels, 3, 3)) + [0, 0, 1.5]  # mostly above the horizon
+    axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
+    sharpness = rng.uniform(5, 60, (texels, 3))
+    amplitude = rng.uniform(0.2, 5, (texels, 3, 3))
+    return rendered(axis, sharpness, amplitude, normals), normals, axis, sharpness, amplitude
+
+
+def test_projected_coordinate_descent_reaches_scipy_nnls_minimum():
+    """Same objective value as scipy's active-set NNLS on least-squares problems with nearly parallel columns
+    (overlapping lobes) and minima on the boundary (negative unconstrained solutions)."""
+    rng = np.random.default_rng(0)
+    batch, rows, n, channels = 20, 60, 6, 2
+    base = rng.normal(size=(batch, rows, n))
+    base[:, :, 1] = base[:, :, 0] + 0.05 * rng.normal(size=(batch, rows))  # nearly parallel pair
+    target = rng.normal(size=(batch, rows, channels))
+    gram, rhs = np.einsum("brn,brm->bnm", base, base), np.einsum("brn,brc->bnc", base, target)
+    ours = nonnegative_quadratic_minimum(gram, rhs, np.ones((batch, n, channels)), sweeps=2000)
+    assert (ours >= 0).all() and (ours == 0).any()  # some constraints are active
+    for b in range(batch):
+        for ch in range(channels):
+            reference = nnls(base[b], target[b, :, ch])[0]
+            residual = lambda x: np.sum((base[b] @ x - target[b, :, ch]) ** 2)  # noqa: E731
+            assert residual(ours[b, :, ch]) <= residual(reference) * (1 + 1e-6) + 1e-9
+
+
+def test_reflected_radiance_quadrature_matches_the_closed_form_on_broad_lobes():
+    """The light field's GGX reflection by pixel quadrature equals the closed form (5 % error on such lobes, its
+    own approximation) for broad SGs at a rough surface, where both are accurate; and views cover the hemisphere."""
+    images, normals, axis, sharpness, amplitude = scene(texels=4)
+    sharpness[:] = 4.0
+    images = rendered(axis, sharpness, amplitude, normals)
+    views = hemisphere_views(normals, (0.5, 0.8, 1.0), 6)
+    assert views.shape == (4, 18, 3) and np.allclose(np.linalg.norm(views, axis=-1), 1)
+    assert (np.einsum("tvx,tx->tv", views, normals) > 0.49).all()
+    quadrature = reflected_radiance(images, normals, views, np.full(4, 0.6))
+    closed = sum(sg_glossy(axis[:, None, k], sharpness[:, None, k], amplitude[:, None, k], normals[:, None], views,
+                           0.6, np.ones(1)) for k in range(3))
+    assert np.abs(closed - quadrature).max() < 0.1 * np.abs(quadrature).max()
+
+
+def test_refit_recovers_what_a_biased_fit_lost_on_views_it_never_fitted():
+    """Amplitudes at 0.6x / 1.5x the truth (what a biased fit leaves) are refitted, with the axes and sharpness
+    kept. Without the ridge the closed form then reflects the light field at least as well as with the true
+    amplitudes, on the held-out views (the closed form is approximate and the render averages pixels, so the
+    truth is not exact either); the product's ridge (as much weight as the data) goes about half way."""
+    images, normals, axis, sharpness, truth = scene()
+    biased = truth * np.array([0.6, 1.5, 0.6])[None, :, None]
+    for roughness in (0.35, 0.5, 0.7):
+        rough = np.full(len(images), roughness)
+        free = refit_amplitudes(images, normals, axis, sharpness, biased, rough, ridge=0.0)
+        damped = refit_amplitudes(images, normals, axis, sharpness, biased, rough)  # the product's ridge
+        before, after_free, after_damped, true = (shaded_error(images, normals, axis, sharpness, a, rough)
+                                                  for a in (biased, free, damped, truth))
+        assert before > 0.15 and after_free <= 1.1 * true, (roughness, before, after_free, true)
+        assert after_free < after_damped < 0.6 * before, (roughness, before, after_damped)  # the ridge: ~halfway
+        assert (damped >= 0).all() and damped.dtype == np.float32
+
+
+def test_refit_keeps_unused_sgs_and_black_texels_at_zero():
+    """SGs past a texel's lobe count stay exactly zero (the node group of a material with fewer SGs never reads
+    them, and the bilinear lookup must not blend them in); a texel that saw no light keeps zero amplitudes
+    (training zeroes them); each texel is refitted at its own roughness."""
+    images, normals, axis, sharpness, truth = scene(texels=6)
+    start = truth.copy()
+    start[:3, 2] = 0.0  # these texels use two SGs
+    images = rendered(axis, sharpness, start, normals)
+    images[5], start[5] = 0.0, 0.0
+    counts = np.array([2, 2, 2, 3, 3, 3])
+    roughness = np.array([0.35, 0.35, 0.5, 0.5, 0.8, 0.8])
+    refitted = refit_amplitudes(images, normals, axis, sharpness, start * 0.7, roughness, counts)
+    assert (refitted[:3, 2] == 0).all() and (refitted[5] == 0).all()
+    for t in range(5):  # each texel's error at its own roughness falls
+        one = slice(t, t + 1)
+        before, after = (shaded_error(images[one], normals[one], axis[one], sharpness[one], a, roughness[t])
+                         for a in (0.7 * start[one], refitted[one]))
+        assert after < 0.7 * before, (t, before, after)
+
+
+def test_refit_stays_finite_for_lobes_below_the_horizon_and_extreme_sharpness():
+    """An SG wholly below the horizon reflects nothing at any view: it keeps its start value instead of taking
+    the huge steps rounding would give it; sharpness at the clamps and HDR amplitudes of 1e5 stay finite."""
+    images, normals, axis, sharpness, truth = scene(texels=4)
+    axis[:, 2] = [0.0, 0.0, -1.0]
+    sharpness[:, 2] = 1e4
+    sharpness[0, 0], truth[1] = 1e-4, truth[1] * 1e5
+    images = rendered(axis, sharpness, truth, normals)
+    refitted = refit_amplitudes(images, normals, axis, sharpness, truth * 0.5, np.full(4, 0.3))
+    assert np.isfinite(refitted).all() and (refitted >= 0).all()
+    assert np.allclose(refitted[:, 2], 0.5 * truth[:, 2].astype(np.float32), rtol=1e-6)
