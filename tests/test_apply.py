@@ -344,8 +344,8 @@ def test_each_material_gets_the_sg_count_its_roughness_needs(tmp_path):
     rougher_texels = int(((channels(atlas, "valid") > 0) & (channels(atlas, "material_id") == next(
         m["id"] for m in info["materials"] if m["name"] == "Rougher"))).sum())
     assert refit["texels"] == rougher_texels > 0
-    assert shaded["Smooth"] == refit["shaded_error_before"]["Smooth"]  # too sharp for R = 8: kept as trained
-    assert all(np.isfinite(v) and v >= 0 for v in shaded.values())
+    assert "Smooth" not in shaded  # too sharp for R = 8: kept as trained, and no error the quadrature can't give
+    assert np.isfinite(shaded["Rougher"]) and shaded["Rougher"] >= 0 and "Rougher" in refit["shaded_error_before"]
     _, _, amplitude, meta = read_sg_texture(tmp_path / "sg_lightfield.exr")
     assert int(meta["sg_count"]) == counts["Smooth"]
     rougher_id = next(m["id"] for m in info["materials"] if m["name"] == "Rougher")

@@ -85,13 +85,15 @@ def texel_lobe_counts(atlas, texel_info: dict, texels: np.ndarray, plan: BakePla
 def shaded_errors(images, normals, axis, sharpness, amplitude, atlas, texel_info: dict, texels, roughness) -> dict:
     """Material name -> relative RMSE between the node group's glossy of the SGs and the exact GGX reflection of
     the rendered light fields, on views the refit never fits (glossy_refit.shaded_error), over up to
-    ERROR_TEXELS_PER_MATERIAL of the material's texels."""
-    from training.glossy_refit import ERROR_TEXELS_PER_MATERIAL, shaded_error
+    ERROR_TEXELS_PER_MATERIAL of the material's texels; for materials rough enough for the quadrature
+    (glossy_refit.refit_min_roughness: sharper lobes fall between its pixel centres)."""
+    from training.glossy_refit import ERROR_TEXELS_PER_MATERIAL, refit_min_roughness, shaded_error
 
     material_ids = channels(atlas, "material_id")[texels[:, 0], texels[:, 1]].astype(np.int64)
+    resolved = roughness >= refit_min_roughness(images.shape[1])
     errors = {}
     for material in texel_info["materials"]:
-        members = np.flatnonzero(material_ids == material["id"])
+        members = np.flatnonzero((material_ids == material["id"]) & resolved)
         if len(members):
             pick = members[np.linspace(0, len(members) - 1, min(len(members), ERROR_TEXELS_PER_MATERIAL)).astype(int)]
             errors[material["name"]] = round(shaded_error(images[pick], normals[pick], axis[pick], sharpness[pick],
