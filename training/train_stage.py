@@ -149,6 +149,7 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
     for k, kind in enumerate(kinds):
         texels, images = read_images(out_dir / kind, plan.stage_hash("render"))
         normals = channels(atlas, "Ng.X", 3)[texels[:, 0], texels[:, 1]]
+        roughness = texel_roughness(atlas, texel_info, texels, plan)
         if encoder == "fixed_sg":  # the production-lightmapper baseline, through the same textures and node group
             yield (k + 0.5) / len(kinds), f"{kind}: fixed SG{FIXED_SG_COUNT} amplitudes by NNLS"
             axes, shared_sharpness, amps = fit_fixed_sg(images, normals, FIXED_SG_COUNT)
@@ -192,7 +193,6 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
             texel_bytes = bytes_per_texel(sg_count, images.shape[-1])
             if kind == "lightfield":  # amplitudes fitted through the node group's glossy (glossy_refit)
                 refit_start = time.perf_counter()
-                roughness = texel_roughness(atlas, texel_info, texels, plan)
                 before = shaded_errors(images, normals, axis, sharpness, amplitude, atlas, texel_info, texels,
                                        roughness)
                 least = refit_min_roughness(images.shape[1])
@@ -216,7 +216,7 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
         metrics["energy_kept"] = energy_kept(prediction, images, normals)  # the log loss's bias (sg_fit)
         if kind == "lightfield" and encoder != "sh_l2":
             metrics["shaded_error"] = shaded_errors(images, normals, axis, sharpness, amplitude, atlas, texel_info,
-                                                    texels, texel_roughness(atlas, texel_info, texels, plan))
+                                                    texels, roughness)
             if encoder == "cnn":
                 metrics["amplitude_refit"] = refit_report
         picture = f"train_{kind}.png"  # rendered (left) | SG reconstruction (right), 16 texels each
