@@ -154,13 +154,16 @@ def load_scene(ns):
 
 def _shaded_error_summary(lightfield_metrics: dict) -> str:
     """'; glossy error 0.08 (CNN amplitudes 0.17)': the mean over materials of the error of the node group's
-    glossy against the exact reflection of the light field, after and before the amplitude refit."""
+    glossy against the exact reflection of the light field, after and before the amplitude refit, and the
+    materials whose refit was not kept."""
     after = lightfield_metrics.get("shaded_error", {})
     before = lightfield_metrics.get("amplitude_refit", {}).get("shaded_error_before", {})
     if not after:
         return ""
     text = f"; glossy error {sum(after.values()) / len(after):.4f}"
-    return text + (f" (CNN amplitudes {sum(before.values()) / len(before):.4f})" if before else "")
+    text += f" (CNN amplitudes {sum(before.values()) / len(before):.4f})" if before else ""
+    reverted = lightfield_metrics.get("amplitude_refit", {}).get("reverted_for", {})
+    return text + (f"; refit not kept for {', '.join(reverted)} (it raised the error)" if reverted else "")
 
 
 def stage_summary(stage: str, result, plan) -> tuple[str, list]:

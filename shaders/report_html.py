@@ -76,8 +76,11 @@ def write_report_html(out_dir) -> Path:
         rows.append((f"glossy error through the node group, {material}", error if before is None else
                      f"{error:.4f} (CNN amplitudes {before:.4f})"))
     if refit:
+        reverted = refit.get("reverted_for", {})
         rows.append(("amplitude refit", f"{refit['texels']} texels at roughness >= {refit['min_roughness']} in "
-                                        f"{refit['seconds']:.1f} s"))
+                                        f"{refit['seconds']:.1f} s" + "".join(
+                                            f"; not kept for {material} (it raised the error to {error:.4f})"
+                                            for material, error in reverted.items())))
     for key, value in rows:
         if value is not None:
             parts.append(f"<tr><th>{esc(key)}</th><td>{esc(str(round(value, 5) if isinstance(value, float) else value))}"

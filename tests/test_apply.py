@@ -346,6 +346,9 @@ def test_each_material_gets_the_sg_count_its_roughness_needs(tmp_path):
     assert refit["texels"] == rougher_texels > 0
     assert "Smooth" not in shaded  # too sharp for R = 8: kept as trained, and no error the quadrature can't give
     assert np.isfinite(shaded["Rougher"]) and shaded["Rougher"] >= 0 and "Rougher" in refit["shaded_error_before"]
+    # kept only where it lowers the held-out error, so the reported error never exceeds the trained amplitudes'
+    assert set(refit["kept_for"]) | set(refit["reverted_for"]) == {"Rougher"}
+    assert shaded["Rougher"] <= refit["shaded_error_before"]["Rougher"]
     _, _, amplitude, meta = read_sg_texture(tmp_path / "sg_lightfield.exr")
     assert int(meta["sg_count"]) == counts["Smooth"]
     rougher_id = next(m["id"] for m in info["materials"] if m["name"] == "Rougher")

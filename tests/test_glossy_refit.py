@@ -117,3 +117,22 @@ def test_refit_stays_finite_for_lobes_below_the_horizon_and_extreme_sharpness():
     refitted = refit_amplitudes(images, normals, axis, sharpness, truth * 0.5, np.full(4, 0.3))
     assert np.isfinite(refitted).all() and (refitted >= 0).all()
     assert np.allclose(refitted[:, 2], 0.5 * truth[:, 2].astype(np.float32), rtol=1e-6)
+
+
+def test_refit_is_kept_per_material_only_where_it_lowers_the_held_out_error():
+    """train_stage.keep_refit_where_better: a material whose refit raised its held-out error keeps the trained
+    amplitudes, one whose refit lowered it takes the refit, texels of materials without an error are untouched."""
+    from shaders.texel_maps import CHANNEL, TEXEL_CHANNELS
+    from training.train_stage import keep_refit_where_better
+
+    atlas = np.zeros((2, 3, len(TEXEL_CHANNELS)), np.float32)
+    atlas[..., CHANNEL["material_id"]] = [[1, 1, 2], [2, 3, 3]]
+    texels = np.array([[0, 0], [0, 1], [0, 2], [1, 0], [1, 1], [1, 2]])
+    info = {"materials": [{"id": 1, "name": "better"}, {"id": 2, "name": "worse"}, {"id": 3, "name": "unmeasured"}]}
+    trained = np.ones((6, 2, 3))
+    refitted = np.full((6, 2, 3), 2.0)
+    result, kept, reverted = keep_refit_where_better(trained, refitted, {"better": 0.3, "worse": 0.2},
+                                                     {"better": 0.1, "worse": 0.25}, atlas, info, texels)
+    assert kept == ["better"] and reverted == {"worse": 0.25}
+    assert (result[:2] == 2).all() and (result[2:] == 1).all()
+    assert (trained == 1).all()  # inputs untouched
