@@ -626,7 +626,9 @@ def _read_bench_json(out: Path) -> dict:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m headless.bench", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--quick", action="store_true", help="room only, Draft and Preview")
+    p.add_argument("--quick", action="store_true",
+                   help="smaller sections: capture of room only; presets Draft on spheres and room; SG counts on "
+                   "spheres only; shorter training; fewer knob values")
     p.add_argument("--out", type=Path, default=Path("bench_out"))
     p.add_argument("--sections", default=",".join(SECTIONS), help="comma-separated subset of " + ",".join(SECTIONS))
     p.add_argument("--scenes", help="presets section: comma-separated demo scenes (default spheres,room,courtyard)")
