@@ -229,10 +229,10 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
                         break
                     yield (k + training_share + (1 - training_share) * fraction) / len(kinds), \
                         f"{kind}: amplitudes refitted through the glossy, {100 * fraction:.0f} %"
-                amplitude, kept, reverted = keep_refit_where_better(
-                    amplitude, refitted, before,
-                    shaded_errors(images, normals, axis, sharpness, refitted, atlas, texel_info, texels, roughness),
-                    atlas, texel_info, texels)
+                after = shaded_errors(images, normals, axis, sharpness, refitted, atlas, texel_info, texels, roughness)
+                amplitude, kept, reverted = keep_refit_where_better(amplitude, refitted, before, after, atlas,
+                                                                    texel_info, texels)
+                final_shaded_error = {name: after[name] if name in kept else error for name, error in before.items()}
                 refit_report = {"seconds": round(time.perf_counter() - refit_start, 2), "texels": len(chosen),
                                 "min_roughness": round(least, 3), "shaded_error_before": before,
                                 "kept_for": kept, "reverted_for": reverted}
@@ -241,10 +241,12 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
         metrics = error_metrics(prediction, images, normals)
         metrics["energy_kept"] = energy_kept(prediction, images, normals)  # the log loss's bias (sg_fit)
         if kind == "lightfield" and encoder != "sh_l2":
-            metrics["shaded_error"] = shaded_errors(images, normals, axis, sharpness, amplitude, atlas, texel_info,
-                                                    texels, roughness)
-            if encoder == "cnn":
+            if encoder == "cnn":  # the guard measured the amplitudes it kept
+                metrics["shaded_error"] = final_shaded_error
                 metrics["amplitude_refit"] = refit_report
+            else:
+                metrics["shaded_error"] = shaded_errors(images, normals, axis, sharpness, amplitude, atlas,
+                                                        texel_info, texels, roughness)
         picture = f"train_{kind}.png"  # rendered (left) | SG reconstruction (right), 16 texels each
         above = above_horizon_fraction(normals, images.shape[1]).reshape(prediction.shape[:3])[..., None]
         target_mosaic, predicted_mosaic = preview_mosaic(images), preview_mosaic(prediction * above)
