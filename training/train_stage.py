@@ -66,12 +66,17 @@ def fit_environment_sgs(out_dir: Path, plan_hash: str, device: str = "cpu") -> d
     return data_out
 
 
+def texel_material_ids(atlas, texels: np.ndarray) -> np.ndarray:
+    """(T,) each texel's 1-based material id (0: none), as texels.json's tables number them."""
+    return channels(atlas, "material_id")[texels[:, 0], texels[:, 1]].astype(np.int64)
+
+
 def _per_texel(atlas, texel_info: dict, texels: np.ndarray, by_name: dict, default, dtype) -> np.ndarray:
     """(T,) the value by_name gives each texel's material (default for materials it does not name)."""
     by_id = np.full(len(texel_info["materials"]) + 1, default, dtype)
     for material in texel_info["materials"]:
         by_id[material["id"]] = by_name.get(material["name"], default)
-    material_ids = channels(atlas, "material_id")[texels[:, 0], texels[:, 1]].astype(np.int64)
+    material_ids = texel_material_ids(atlas, texels)
     return by_id[np.clip(material_ids, 0, len(by_id) - 1)]
 
 
@@ -89,7 +94,7 @@ def shaded_errors(images, normals, axis, sharpness, amplitude, atlas, texel_info
     (glossy_refit.refit_min_roughness: sharper lobes fall between its pixel centres)."""
     from training.glossy_refit import ERROR_TEXELS_PER_MATERIAL, refit_min_roughness, shaded_error
 
-    material_ids = channels(atlas, "material_id")[texels[:, 0], texels[:, 1]].astype(np.int64)
+    material_ids = texel_material_ids(atlas, texels)
     resolved = roughness >= refit_min_roughness(images.shape[1])
     errors = {}
     for material in texel_info["materials"]:
@@ -106,7 +111,7 @@ def keep_refit_where_better(trained, refitted, before: dict, after: dict, atlas,
     trained ones elsewhere: (amplitudes, [materials kept], {material: error the refit had}). Where the GGX lobe is
     barely wider than a light-field pixel, the quadrature's target aliases and the refit can fit that (measured on
     the Production spheres, R = 32: roughness 0.3 went 0.29 -> 0.34 on held-out views, FLIP 0.077 -> 0.092)."""
-    material_ids = channels(atlas, "material_id")[texels[:, 0], texels[:, 1]].astype(np.int64)
+    material_ids = texel_material_ids(atlas, texels)
     result = np.array(trained, copy=True)
     kept, reverted = [], {}
     for material in texel_info["materials"]:
