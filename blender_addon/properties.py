@@ -37,6 +37,10 @@ class SGLightfieldSettings(bpy.types.PropertyGroup):
     sg_count: IntProperty(name="SG Count", description="Spherical Gaussians per texel", default=16, min=1, max=64)
     training_budget_s: FloatProperty(name="Training Budget", description="Seconds of training at most",
                                      default=300.0, min=1.0, subtype="TIME_ABSOLUTE", unit="TIME_ABSOLUTE")
+    lobe_refit_steps: IntProperty(name="Lobe Refit Steps",
+                                  description="Steps refitting the SGs' axes, sharpness and amplitudes through the "
+                                  "glossy shading after training (0: off; Production uses 150)",
+                                  default=0, min=0, soft_max=1000, max=100000)
     device: EnumProperty(name="Device", items=DEVICE_ITEMS, default="CPU")
     output_dir: StringProperty(name="Bake Directory", description="Where the bake writes its files",
                                default="//sg_bake", subtype="DIR_PATH",

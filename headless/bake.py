@@ -45,6 +45,8 @@ def parse_args(args: list[str]) -> argparse.Namespace:
     p.add_argument("--uniform-sg-count", action="store_true",
                    help="give every glossy material --sg-count SGs, whatever its roughness")
     p.add_argument("--training-budget", type=float, dest="training_budget_s")
+    p.add_argument("--lobe-refit-steps", type=int, help="Adam steps refitting the SGs' axes, sharpness and "
+                   "amplitudes through the glossy shading after training (0: off; Production: 150)")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     p.add_argument("--tile", metavar="i/N", help="render only share i of N of the tiles (render farms); "
                    "the shares merge in the bake directory")
@@ -154,16 +156,26 @@ def load_scene(ns):
 
 def _shaded_error_summary(lightfield_metrics: dict) -> str:
     """'; glossy error 0.08 (CNN amplitudes 0.17)': the mean over materials of the error of the node group's
-    glossy against the exact reflection of the light field, after and before the amplitude refit, and the
-    materials whose refit was not kept."""
+    glossy against the exact reflection of the light field, after and before the amplitude refit, the materials
+    whose refit was not kept, and with the lobe refit the same error between texels before and after it."""
     after = lightfield_metrics.get("shaded_error", {})
     before = lightfield_metrics.get("amplitude_refit", {}).get("shaded_error_before", {})
     if not after:
         return ""
     text = f"; glossy error {sum(after.values()) / len(after):.4f}"
     text += f" (CNN amplitudes {sum(before.values()) / len(before):.4f})" if before else ""
-    reverted = lightfield_metrics.get("amplitude_refit", {}).get("reverted_for", {})
-    return text + (f"; refit not kept for {', '.join(reverted)} (it raised the error)" if reverted else "")
+    refit = lightfield_metrics.get("amplitude_refit", {})
+    reverted = refit.get("reverted_for", {})
+    text += f"; refit not kept for {', '.join(reverted)} (it raised the error)" if reverted else ""
+    between = lightfield_metrics.get("interpolated_shaded_error", {})
+    before = refit.get("lobes", {}).get("interpolated_error_before", {})
+    if before and set(before) <= set(between):
+        after = [between[name] for name in before]
+        text += (f"; between texels where the lobes were refitted {sum(after) / len(after):.4f} (before "
+                 f"{sum(before.values()) / len(before):.4f})")
+        lobes_reverted = refit["lobes"]["reverted_for"]
+        text += f"; lobe refit not kept for {', '.join(lobes_reverted)}" if lobes_reverted else ""
+    return text
 
 
 def stage_summary(stage: str, result, plan) -> tuple[str, list]:
@@ -204,7 +216,7 @@ def run(ns, reporter: Reporter) -> int:
     settings = BakeSettings.from_preset(
         ns.preset, texel_density=ns.texel_density, lightfield_resolution=ns.lightfield_resolution,
         samples=ns.samples, sg_count=ns.sg_count, uniform_sg_count=ns.uniform_sg_count,
-        training_budget_s=ns.training_budget_s, device=ns.device)
+        training_budget_s=ns.training_budget_s, lobe_refit_steps=ns.lobe_refit_steps, device=ns.device)
     out = ns.out.expanduser().resolve()
     if out.exists() and not out.is_dir():
         raise BakeInputError(f"{ns.out}: exists and is not a directory")

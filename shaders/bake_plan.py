@@ -28,11 +28,14 @@ GLOSSY_ROUGHNESS_MAX = 0.6
 # 0.014), and 15 s of training matched 60 s on 16 spp data (0.113 vs 0.120: longer fits the noise). Production keeps
 # R = 32 and density 16 for scenes with finer lighting than spheres; on this 2-core CPU it is a long job (spheres:
 # render ~40 min), on a GPU or a farm (--tile i/N) minutes.
+LOBE_REFIT_STEPS_PRODUCTION = 150  # Adam steps of training/glossy_lobe_fit.py (docs/design-additions.md)
 PRESETS = {
-    "draft": dict(texel_density=4.0, lightfield_resolution=16, samples=16, sg_count=16, training_budget_s=30.0),
-    "preview": dict(texel_density=8.0, lightfield_resolution=16, samples=64, sg_count=16, training_budget_s=120.0),
+    "draft": dict(texel_density=4.0, lightfield_resolution=16, samples=16, sg_count=16, training_budget_s=30.0,
+                  lobe_refit_steps=0),
+    "preview": dict(texel_density=8.0, lightfield_resolution=16, samples=64, sg_count=16, training_budget_s=120.0,
+                    lobe_refit_steps=0),
     "production": dict(texel_density=16.0, lightfield_resolution=32, samples=256, sg_count=16,
-                       training_budget_s=600.0),
+                       training_budget_s=600.0, lobe_refit_steps=LOBE_REFIT_STEPS_PRODUCTION),
 }
 
 # Camera paths per second of the atlas render on this machine class (2 cores), measured by `make bench` on
@@ -46,7 +49,7 @@ STAGE_SETTINGS = {
     "capture": {"texel_density"},
     "render": {"texel_density", "lightfield_resolution", "samples"},
     "train": {"texel_density", "lightfield_resolution", "samples", "sg_count", "uniform_sg_count",
-              "training_budget_s"},
+              "training_budget_s", "lobe_refit_steps"},
 }
 STAGE_SETTINGS["apply"] = STAGE_SETTINGS["evaluate"] = STAGE_SETTINGS["train"]
 
@@ -68,6 +71,7 @@ class BakeSettings:
     sg_count: int = 8  # the most SGs a glossy material gets (0 = 16); each gets what its roughness needs, up to it
     uniform_sg_count: bool = False  # every glossy material gets sg_count SGs, whatever its roughness
     training_budget_s: float = 60.0
+    lobe_refit_steps: int = 0  # Adam steps refitting SG axes, sharpness and amplitudes through the glossy (0: off)
     device: str = "cpu"
 
     @classmethod
@@ -88,6 +92,7 @@ class BakeSettings:
             (1 <= self.samples <= 65536, f"samples {self.samples} is outside 1..65536"),
             (0 <= self.sg_count <= 64, f"SG count {self.sg_count} is outside 0 (= 16)..64"),
             (1 <= self.training_budget_s <= 7 * 24 * 3600, f"training budget {self.training_budget_s} s is outside 1 s..7 days"),
+            (0 <= self.lobe_refit_steps <= 100_000, f"lobe refit steps {self.lobe_refit_steps} is outside 0..100000"),
             (self.device in ("cpu", "cuda"), f"device {self.device!r} is not 'cpu' or 'cuda'"),
         ]
         for ok, message in checks:
@@ -189,7 +194,8 @@ class BakePlan:
                  f"env visibility {'on (' + ('RGB' if self.environment.iwev_channels == 3 else 'mono') + ')' if self.environment.iwev else 'off'}",
                  f"hair {'offered' if self.hair_objects else 'off'}",
                  f"{self.texels} texels", f"render ~{self.render_estimate_s():.0f} s",
-                 f"training <= {self.settings.training_budget_s:.0f} s"]
+                 f"training <= {self.settings.training_budget_s:.0f} s"
+                 + (f" + {self.settings.lobe_refit_steps} lobe-refit steps" if self.settings.lobe_refit_steps else "")]
         memory = self.memory_estimate_mb()
         parts.append(f"~{memory['disk_mb']:g} MB on disk, ~{memory['ram_mb']:g} MB RAM")
         return ", ".join(parts)

@@ -81,6 +81,17 @@ def write_report_html(out_dir) -> Path:
                                         f"{refit['seconds']:.1f} s" + "".join(
                                             f"; not kept for {material} (it raised the error to {error:.4f})"
                                             for material, error in reverted.items())))
+    lobes = refit.get("lobes", {})
+    for material, error in lightfield.get("interpolated_shaded_error", {}).items():
+        before = lobes.get("interpolated_error_before", {}).get(material)
+        rows.append((f"glossy error between texels (SGs blended), {material}", error if before is None else
+                     f"{error:.4f} (before the lobe refit {before:.4f})"))
+    if lobes:
+        rows.append(("lobe refit (axes, sharpness, amplitudes)",
+                     f"{lobes['steps']} steps on {lobes['texels']} texels at roughness >= {lobes['min_roughness']} in "
+                     f"{lobes['seconds']:.1f} s"
+                     + "".join(f"; not kept for {material} (it raised the error between texels to {error:.4f})"
+                               for material, error in lobes.get("reverted_for", {}).items())))
     for key, value in rows:
         if value is not None:
             parts.append(f"<tr><th>{esc(key)}</th><td>{esc(str(round(value, 5) if isinstance(value, float) else value))}"

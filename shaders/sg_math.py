@@ -381,6 +381,21 @@ def sg_sum_eval(v, axes, sharpness, amplitudes):
     return sg_eval(v[..., None, :], axes, sharpness, amplitudes).sum(axis=-2)
 
 
+def unit_midpoint(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """normalise(x + y): a blended axis or normal, as a shader renormalises it after interpolation."""
+    total = np.asarray(x, np.float64) + y
+    return total / np.maximum(np.linalg.norm(total, axis=-1, keepdims=True), 1e-8)
+
+
+def midpoint_parameters(axis, sharpness, amplitude, a, b):
+    """SG parameters halfway between texels a and b, as the node group's bilinear filter gives them at the midpoint:
+    axes blended and renormalised, amplitudes blended, sharpness blended in the log encoding it is stored in
+    (sg_shading.encode_sharpness), i.e. the geometric mean."""
+    log_sharpness = np.log(np.maximum(sharpness, SHARPNESS_MIN))
+    return (unit_midpoint(axis[a], axis[b]), np.exp(0.5 * (log_sharpness[a] + log_sharpness[b])),
+            0.5 * (amplitude[a] + amplitude[b]))
+
+
 def half_amplitude_scale(max_amplitude) -> float:
     """Scale that keeps stored amplitudes below the half-float limit (1 unless there are HDR suns)."""
     peak = float(np.nanmax(np.asarray(max_amplitude, dtype=np.float64), initial=0.0))

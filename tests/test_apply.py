@@ -312,24 +312,25 @@ def _render_small(scene, path, camera_location) -> np.ndarray:
 
 def test_each_material_gets_the_sg_count_its_roughness_needs(tmp_path):
     """A smooth and a rougher glossy material: the rougher one is fitted and shaded with fewer SGs (its texels'
-    extra SGs are zero, its node group is smaller); --uniform-sg-count gives both the same."""
+    extra SGs are zero after the amplitude and lobe refits too, its node group is smaller); --uniform-sg-count
+    gives both the same."""
     from shaders.bake_plan import auto_sg_count
     from shaders.sg_textures import read_sg_texture
     from shaders.texel_maps import channels, read_texel_maps
     from training.train_stage import train_stage
 
-    smooth, rougher = material("Smooth", 0.1, metallic=1.0), material("Rougher", 0.5, metallic=1.0)
+    smooth, rougher = material("Smooth", 0.1, metallic=1.0), material("Rougher", 0.58, metallic=1.0)
     ball = mesh_object("Smooth ball", uv_sphere(0.6, 16, 8), smooth)
     other = mesh_object("Rougher ball", uv_sphere(0.6, 16, 8), rougher)
     other.location = (1.5, 0, 0)
     lamp = bpy.data.objects.new("Lamp", bpy.data.lights.new("Lamp", "POINT"))
     lamp.location = (0, -2, 2)
     scene = scene_with(ball, other, lamp)
-    settings = BakeSettings.from_preset("draft", texel_density=6.0, lightfield_resolution=8, samples=4, sg_count=16,
-                                        training_budget_s=2.0)
+    settings = BakeSettings.from_preset("draft", texel_density=6.0, lightfield_resolution=16, samples=4, sg_count=16,
+                                        training_budget_s=2.0, lobe_refit_steps=10)
     plan = build_plan(scene, settings)
     counts = {m.name: m.sg_count for o in plan.baked_objects for m in o.materials}
-    assert counts == {"Smooth": auto_sg_count(0.1), "Rougher": auto_sg_count(0.5)} and counts["Rougher"] < 16
+    assert counts == {"Smooth": auto_sg_count(0.1), "Rougher": auto_sg_count(0.58)} and counts["Rougher"] < 16
     uniform = build_plan(scene, BakeSettings.from_preset("draft", sg_count=16, uniform_sg_count=True))
     assert {m.sg_count for o in uniform.baked_objects for m in o.materials} == {16}
     assert uniform.stage_hash("train") != plan.stage_hash("train")
@@ -338,17 +339,29 @@ def test_each_material_gets_the_sg_count_its_roughness_needs(tmp_path):
     render_stage(scene, plan, tmp_path)
     metrics = train_stage(tmp_path, plan).metrics["lightfield"]
     atlas, info = read_texel_maps(tmp_path)
-    # amplitudes refitted through the glossy where the lobe spans half a pixel of R = 8 (roughness >= 0.47)
+    # amplitudes refitted through the glossy where the lobe spans half a pixel of R = 16 (roughness >= 0.33), lobes
+    # where it spans 1.5 pixels (>= 0.58)
     refit, shaded = metrics["amplitude_refit"], metrics["shaded_error"]
-    assert refit["min_roughness"] == pytest.approx(0.47, abs=0.01)
+    assert refit["min_roughness"] == pytest.approx(0.33, abs=0.01)
+    assert refit["lobes"]["min_roughness"] == pytest.approx(0.576, abs=0.001)
     rougher_texels = int(((channels(atlas, "valid") > 0) & (channels(atlas, "material_id") == next(
         m["id"] for m in info["materials"] if m["name"] == "Rougher"))).sum())
     assert refit["texels"] == rougher_texels > 0
-    assert "Smooth" not in shaded  # too sharp for R = 8: kept as trained, and no error the quadrature can't give
+    assert "Smooth" not in shaded  # too sharp for R = 16: kept as trained, and no error the quadrature can't give
     assert np.isfinite(shaded["Rougher"]) and shaded["Rougher"] >= 0 and "Rougher" in refit["shaded_error_before"]
     # kept only where it lowers the held-out error, so the reported error never exceeds the trained amplitudes'
     assert set(refit["kept_for"]) | set(refit["reverted_for"]) == {"Rougher"}
     assert shaded["Rougher"] <= refit["shaded_error_before"]["Rougher"]
+    # the lobe refit, too, is kept only where it lowers the error between texels (SGs blended as the shader does)
+    lobes, between = refit["lobes"], metrics["interpolated_shaded_error"]
+    assert lobes["steps"] == 10 and lobes["texels"] == rougher_texels
+    assert set(lobes["kept_for"]) | set(lobes["reverted_for"]) == {"Rougher"}
+    assert set(between) == {"Rougher"} and 0 <= between["Rougher"] <= lobes["interpolated_error_before"]["Rougher"]
+    page = (tmp_path / "report.html").read_text()  # the report and the command line say what the refits did
+    assert "lobe refit (axes, sharpness, amplitudes)</th><td>10 steps on " in page
+    assert "glossy error between texels (SGs blended), Rougher" in page
+    from headless.bake import _shaded_error_summary
+    assert "between texels where the lobes were refitted" in _shaded_error_summary(metrics)
     _, _, amplitude, meta = read_sg_texture(tmp_path / "sg_lightfield.exr")
     assert int(meta["sg_count"]) == counts["Smooth"]
     rougher_id = next(m["id"] for m in info["materials"] if m["name"] == "Rougher")

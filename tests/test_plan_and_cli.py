@@ -84,7 +84,8 @@ def test_zero_area_and_loose_vertices_are_skipped_with_a_warning():
 
 @pytest.mark.parametrize("overrides, message", [
     (dict(texel_density=1e9), "texel density"), (dict(lightfield_resolution=4), "resolution"),
-    (dict(samples=0), "samples"), (dict(sg_count=999), "SG count"), (dict(device="tpu"), "device")])
+    (dict(samples=0), "samples"), (dict(sg_count=999), "SG count"), (dict(device="tpu"), "device"),
+    (dict(lobe_refit_steps=-1), "lobe refit steps")])
 def test_absurd_settings_are_rejected(overrides, message):
     with pytest.raises(BakeInputError, match=message):
         BakeSettings.from_preset("draft", **overrides)

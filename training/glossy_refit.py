@@ -1,4 +1,4 @@
-"""Refit each texel's SG amplitudes through the node group's glossy closed form (numpy; DESIGN section 5).
+"""Refit each texel's SG amplitudes through the node group's glossy closed form (numpy; docs/design-additions.md §5).
 
 The CNN fits the light field in log space: it keeps 86-96 % of the rendered energy (Jensen's bias on noisy renders)
 and weighs dim and bright pixels alike. What a viewer sees is the node group's glossy, sg_math.sg_glossy of each
@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from shaders.octahedral import pixel_directions, pixel_solid_angles
-from shaders.sg_math import ggx_brdf_cos, orthonormal_tangents, sg_glossy
+from shaders.sg_math import ggx_brdf_cos, midpoint_parameters, orthonormal_tangents, sg_glossy, unit_midpoint
 
 REFIT_VIEW_COSINES = tuple(np.linspace(0.1, 1.0, 10))  # n.v of the fitted views
 REFIT_VIEW_AZIMUTHS = 12
@@ -33,13 +33,13 @@ ERROR_TEXELS_PER_MATERIAL = 128  # texels (evenly picked) the reported error of 
 UNIT_F0 = np.ones(1)
 
 
-def refit_min_roughness(resolution: int) -> float:
+def refit_min_roughness(resolution: int, lobe_pixels: float = REFIT_LOBE_PIXELS) -> float:
     """The least roughness the refit is used at: the GGX lobe (about alpha = roughness^2 radians wide) spans
     REFIT_LOBE_PIXELS light-field pixels (about sqrt(4 pi) / R radians). Sharper lobes fall between the
     quadrature's pixel centres. This gives 0.24 at R = 32, 0.33 at R = 16. Near the bound the target still aliases
     (Production spheres, R = 32: held-out error at roughness 0.3 rose 0.29 -> 0.34, and 0.2 got worse too), so the
     train stage keeps a material's refit only where it lowers the held-out error."""
-    return float(np.sqrt(REFIT_LOBE_PIXELS * np.sqrt(4 * np.pi) / resolution))
+    return float(np.sqrt(lobe_pixels * np.sqrt(4 * np.pi) / resolution))
 
 
 def hemisphere_views(normals: np.ndarray, cosines=REFIT_VIEW_COSINES, azimuths: int = REFIT_VIEW_AZIMUTHS):
@@ -140,6 +140,38 @@ def shaded_error(images, normals, axis, sharpness, amplitude, roughness) -> floa
         target = reflected_radiance(images[s], normals[s], views[s], rough)
         shaded = np.einsum("bvn,bnc->bvc", closed_form_responses(axis[s], sharpness[s], normals[s], views[s], rough),
                            np.asarray(amplitude[s], np.float64))
+        error += float(((shaded - target) ** 2).sum())
+        norm += float((target ** 2).sum())
+    return float(np.sqrt(error / max(norm, 1e-300)))
+
+
+def atlas_neighbour_pairs(texels: np.ndarray) -> np.ndarray:
+    """(P, 2) rows (a, b) of `texels` ((T, 2) atlas [row, col]) that are right or down neighbours in the atlas: the
+    texels a bilinear lookup blends."""
+    index = {(int(r), int(c)): i for i, (r, c) in enumerate(texels)}
+    pairs = [(i, index[(r + dr, c + dc)]) for (r, c), i in index.items() for dr, dc in ((0, 1), (1, 0))
+             if (r + dr, c + dc) in index]
+    return np.array(pairs, np.int64).reshape(-1, 2)
+
+
+def interpolated_shaded_error(images, normals, axis, sharpness, amplitude, roughness, a, b) -> float:
+    """Relative RMSE, over held-out views, halfway between texels a and b (index arrays): the node group's glossy
+    of the blended SGs (midpoint_parameters, as its bilinear lookup gives them) against the exact GGX reflection of
+    the two light fields' mean, at the renormalised mean normal. What a viewer sees between texels: SGs fitted
+    texel by texel can each be right and still blend into wrong lobes."""
+    rough = np.broadcast_to(np.asarray(roughness, np.float64), (len(images),))
+    normal = unit_midpoint(normals[a], normals[b])
+    blended = midpoint_parameters(np.asarray(axis, np.float64), np.asarray(sharpness, np.float64),
+                                  np.asarray(amplitude, np.float64), a, b)
+    light = 0.5 * (np.asarray(images[a], np.float64) + images[b])
+    midpoint_roughness = 0.5 * (rough[a] + rough[b])
+    views = hemisphere_views(normal, HELD_OUT_VIEW_COSINES, HELD_OUT_VIEW_AZIMUTHS)
+    error = norm = 0.0
+    for start in range(0, len(a), REFIT_BATCH):
+        s = slice(start, start + REFIT_BATCH)
+        target = reflected_radiance(light[s], normal[s], views[s], midpoint_roughness[s])
+        responses = closed_form_responses(blended[0][s], blended[1][s], normal[s], views[s], midpoint_roughness[s])
+        shaded = np.einsum("bvn,bnc->bvc", responses, blended[2][s])
         error += float(((shaded - target) ** 2).sum())
         norm += float((target ** 2).sum())
     return float(np.sqrt(error / max(norm, 1e-300)))

@@ -29,7 +29,7 @@ from torch import nn
 from shaders.atomic import atomic_output
 from shaders.octahedral import pixel_directions
 from shaders.octahedral import pixel_solid_angles as exact_solid_angles
-from shaders.sg_math import SHARPNESS_MAX, SHARPNESS_MIN
+from shaders.sg_math import SHARPNESS_MAX, SHARPNESS_MIN, midpoint_parameters, unit_midpoint  # noqa: F401
 from training.sg_torch import oct_decode, pixel_solid_angles, safe_normalize, sg_sum_eval
 
 LOG_SHARPNESS_MIN, LOG_SHARPNESS_MAX = math.log(SHARPNESS_MIN), math.log(SHARPNESS_MAX)
@@ -489,21 +489,6 @@ def pair_indices(texels: np.ndarray, pairs: np.ndarray):
     a = np.array([index[(int(r), int(c))] for r, c in pairs[:, :2]], np.int64)
     b = np.array([index[(int(r), int(c))] for r, c in pairs[:, 2:]], np.int64)
     return a, b
-
-
-def unit_midpoint(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """normalise(x + y): a blended axis or normal, as a shader renormalises it after interpolation."""
-    total = np.asarray(x, np.float64) + y
-    return total / np.maximum(np.linalg.norm(total, axis=-1, keepdims=True), 1e-8)
-
-
-def midpoint_parameters(axis, sharpness, amplitude, a, b):
-    """SG parameters halfway between texels a and b, as the node group's bilinear filter gives them at the midpoint:
-    axes blended and renormalised, amplitudes blended, sharpness blended in the log encoding it is stored in
-    (sg_shading.encode_sharpness), i.e. the geometric mean."""
-    log_sharpness = np.log(np.maximum(sharpness, SHARPNESS_MIN))
-    return (unit_midpoint(axis[a], axis[b]), np.exp(0.5 * (log_sharpness[a] + log_sharpness[b])),
-            0.5 * (amplitude[a] + amplitude[b]))
 
 
 def energy_kept(prediction, target, normals) -> float:

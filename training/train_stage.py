@@ -87,32 +87,62 @@ def texel_lobe_counts(atlas, texel_info: dict, texels: np.ndarray, plan: BakePla
     return _per_texel(atlas, texel_info, texels, by_name, most, np.int64)
 
 
+def _error_members(atlas, texel_info: dict, texels, roughness, resolution: int):
+    """Material name -> indices of its texels rough enough for the quadrature (glossy_refit.refit_min_roughness:
+    sharper lobes fall between its pixel centres)."""
+    from training.glossy_refit import refit_min_roughness
+
+    material_ids = texel_material_ids(atlas, texels)
+    resolved = roughness >= refit_min_roughness(resolution)
+    members = {m["name"]: np.flatnonzero((material_ids == m["id"]) & resolved) for m in texel_info["materials"]}
+    return {name: index for name, index in members.items() if len(index)}
+
+
+def _evenly(items: np.ndarray, count: int) -> np.ndarray:
+    return items[np.linspace(0, len(items) - 1, min(len(items), count)).astype(int)]
+
+
 def shaded_errors(images, normals, axis, sharpness, amplitude, atlas, texel_info: dict, texels, roughness) -> dict:
     """Material name -> relative RMSE between the node group's glossy of the SGs and the exact GGX reflection of
     the rendered light fields, on views the refit never fits (glossy_refit.shaded_error), over up to
-    ERROR_TEXELS_PER_MATERIAL of the material's texels; for materials rough enough for the quadrature
-    (glossy_refit.refit_min_roughness: sharper lobes fall between its pixel centres)."""
-    from training.glossy_refit import ERROR_TEXELS_PER_MATERIAL, refit_min_roughness, shaded_error
+    ERROR_TEXELS_PER_MATERIAL of the material's texels rough enough for the quadrature."""
+    from training.glossy_refit import ERROR_TEXELS_PER_MATERIAL, shaded_error
 
-    material_ids = texel_material_ids(atlas, texels)
-    resolved = roughness >= refit_min_roughness(images.shape[1])
     errors = {}
-    for material in texel_info["materials"]:
-        members = np.flatnonzero((material_ids == material["id"]) & resolved)
-        if len(members):
-            pick = members[np.linspace(0, len(members) - 1, min(len(members), ERROR_TEXELS_PER_MATERIAL)).astype(int)]
-            errors[material["name"]] = round(shaded_error(images[pick], normals[pick], axis[pick], sharpness[pick],
-                                                          amplitude[pick], roughness[pick]), 4)
+    for name, members in _error_members(atlas, texel_info, texels, roughness, images.shape[1]).items():
+        pick = _evenly(members, ERROR_TEXELS_PER_MATERIAL)
+        errors[name] = round(shaded_error(images[pick], normals[pick], axis[pick], sharpness[pick], amplitude[pick],
+                                          roughness[pick]), 4)
+    return errors
+
+
+def interpolated_errors(images, normals, axis, sharpness, amplitude, atlas, texel_info: dict, texels,
+                        roughness) -> dict:
+    """Material name -> the same error halfway between atlas neighbours, with the SGs blended as the node group's
+    bilinear lookup blends them (glossy_refit.interpolated_shaded_error), over up to ERROR_TEXELS_PER_MATERIAL
+    neighbour pairs of the material's texels."""
+    from training.glossy_refit import ERROR_TEXELS_PER_MATERIAL, atlas_neighbour_pairs, interpolated_shaded_error
+
+    errors = {}
+    for name, members in _error_members(atlas, texel_info, texels, roughness, images.shape[1]).items():
+        pairs = atlas_neighbour_pairs(texels[members])
+        if len(pairs):
+            pick = members[_evenly(pairs, ERROR_TEXELS_PER_MATERIAL)]
+            errors[name] = round(interpolated_shaded_error(images, normals, axis, sharpness, amplitude, roughness,
+                                                           pick[:, 0], pick[:, 1]), 4)
     return errors
 
 
 def keep_refit_where_better(trained, refitted, before: dict, after: dict, atlas, texel_info: dict, texels):
-    """Per material, the refitted amplitudes where they lower the held-out glossy error (shaded_errors), the
-    trained ones elsewhere: (amplitudes, [materials kept], {material: error the refit had}). Where the GGX lobe is
-    barely wider than a light-field pixel, the quadrature's target aliases and the refit can fit that (measured on
-    the Production spheres, R = 32: roughness 0.3 went 0.29 -> 0.34 on held-out views, FLIP 0.077 -> 0.092)."""
+    """Per material, the refitted values where they lower the held-out glossy error (`before` and `after` map
+    material name -> error), the trained ones elsewhere: (values, [materials kept], {material: error the refit
+    had}). Values are an array (T, ...) or a tuple of them. Where the GGX lobe is barely wider than a light-field
+    pixel, the quadrature's target aliases and the refit can fit that (measured on the Production spheres, R = 32:
+    roughness 0.3 went 0.29 -> 0.34 on held-out views, FLIP 0.077 -> 0.092)."""
     material_ids = texel_material_ids(atlas, texels)
-    result = np.array(trained, copy=True)
+    single = not isinstance(trained, tuple)
+    result = [np.array(v, copy=True) for v in ((trained,) if single else trained)]
+    refitted = (refitted,) if single else refitted
     kept, reverted = [], {}
     for material in texel_info["materials"]:
         name = material["name"]
@@ -120,14 +150,17 @@ def keep_refit_where_better(trained, refitted, before: dict, after: dict, atlas,
             continue
         members = material_ids == material["id"]
         if after[name] < before[name]:
-            result[members] = refitted[members]
+            for value, new in zip(result, refitted):
+                value[members] = new[members]
             kept.append(name)
         else:
             reverted[name] = after[name]
-    return result, kept, reverted
+    return (result[0] if single else tuple(result)), kept, reverted
 
 
-REFIT_PROGRESS_SHARE = 0.9  # of the light field's progress bar: training; the rest: the amplitude refit
+# Shares of the light field's progress bar: training, the amplitude refit, the lobe refit (when it runs).
+PROGRESS_SHARES = (0.9, 0.1, 0.0)
+PROGRESS_SHARES_WITH_LOBE_REFIT = (0.6, 0.05, 0.35)
 DEFAULT_REFIT_ROUGHNESS = 0.5  # texels of a material the plan does not list (none expected)
 
 
@@ -152,6 +185,7 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
     import torch
 
     from training.baselines import bytes_per_texel_fixed_sg, bytes_per_texel_sh_l2, eval_sh, fit_fixed_sg, fit_sh_l2
+    from training.glossy_lobe_fit import lobe_refit_min_roughness, lobe_refit_steps
     from training.glossy_refit import refit_min_roughness, refit_steps
     from training.sg_fit import (LightFieldData, TrainConfig, Trainer, energy_kept, error_metrics,
                                  midpoint_parameters, pair_indices, reconstruct, unit_midpoint)
@@ -198,7 +232,9 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
             counts_key = hashlib.sha256(counts.tobytes()).hexdigest()[:8]
             checkpoint = out_dir / "train" / f"{kind}_{plan.stage_hash('render')}_n{sg_count}_{counts_key}.pt"
             trainer = Trainer(data, config, checkpoint=checkpoint)
-            training_share = REFIT_PROGRESS_SHARE if kind == "lightfield" else 1.0  # of this kind's progress
+            lobe_steps = settings.lobe_refit_steps if kind == "lightfield" else 0
+            shares = PROGRESS_SHARES_WITH_LOBE_REFIT if lobe_steps else PROGRESS_SHARES
+            training_share = shares[0] if kind == "lightfield" else 1.0  # of this kind's progress
 
             last_save = time.perf_counter()
             try:
@@ -232,7 +268,7 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
                         refitted = amplitude.copy()
                         refitted[chosen] = finished.value
                         break
-                    yield (k + training_share + (1 - training_share) * fraction) / len(kinds), \
+                    yield (k + training_share + shares[1] * fraction) / len(kinds), \
                         f"{kind}: amplitudes refitted through the glossy, {100 * fraction:.0f} %"
                 after = shaded_errors(images, normals, axis, sharpness, refitted, atlas, texel_info, texels, roughness)
                 amplitude, kept, reverted = keep_refit_where_better(amplitude, refitted, before, after, atlas,
@@ -241,17 +277,58 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
                 refit_report = {"seconds": round(time.perf_counter() - refit_start, 2), "texels": len(chosen),
                                 "min_roughness": round(least, 3), "shaded_error_before": before,
                                 "kept_for": kept, "reverted_for": reverted}
+                interpolated = interpolated_errors(images, normals, axis, sharpness, amplitude, atlas, texel_info,
+                                                   texels, roughness)
+                if lobe_steps:
+                    lobe_start = time.perf_counter()
+                    refitted = (axis.copy(), sharpness.copy(), amplitude.copy())
+                    material_ids = texel_material_ids(atlas, texels)
+                    rough_enough = np.flatnonzero(roughness >= lobe_refit_min_roughness(images.shape[1]))
+                    groups = {m["name"]: np.intersect1d(rough_enough, np.flatnonzero(material_ids == m["id"]))
+                              for m in texel_info["materials"]}
+                    groups = {name: group for name, group in groups.items() if len(group)}
+                    lobe_texels, done = sum(map(len, groups.values())), 0
+                    for group in groups.values():
+                        lobe_fit = lobe_refit_steps(images[group], normals[group], texels[group], axis[group],
+                                                    sharpness[group], amplitude[group], roughness[group],
+                                                    int(counts[group].max()), lobe_steps, device)
+                        while True:
+                            try:
+                                fraction = (done + len(group) * next(lobe_fit)) / lobe_texels
+                            except StopIteration as finished:
+                                for value, new in zip(refitted, finished.value):
+                                    value[group] = new
+                                break
+                            yield (k + sum(shares[:2]) + shares[2] * fraction) / len(kinds), \
+                                f"{kind}: lobes refitted through the glossy, {100 * fraction:.0f} %"
+                        done += len(group)
+                    lobe_after = interpolated_errors(images, normals, *refitted, atlas, texel_info, texels, roughness)
+                    lobe_before = {name: error for name, error in interpolated.items() if name in groups}
+                    (axis, sharpness, amplitude), lobe_kept, lobe_reverted = keep_refit_where_better(
+                        (axis, sharpness, amplitude), refitted, lobe_before, lobe_after, atlas, texel_info, texels)
+                    refit_report["lobes"] = {"seconds": round(time.perf_counter() - lobe_start, 2), "steps": lobe_steps,
+                                             "texels": lobe_texels,
+                                             "min_roughness": round(lobe_refit_min_roughness(images.shape[1]), 3),
+                                             "interpolated_error_before": lobe_before, "kept_for": lobe_kept,
+                                             "reverted_for": lobe_reverted}
+                    interpolated = {name: lobe_after[name] if name in lobe_kept else error
+                                    for name, error in interpolated.items()}
+                    final_shaded_error = shaded_errors(images, normals, axis, sharpness, amplitude, atlas, texel_info,
+                                                       texels, roughness)
         prediction = eval_sh(coefficients, images.shape[1]) if encoder == "sh_l2" else \
             reconstruct(axis, sharpness, amplitude, images.shape[1])
         metrics = error_metrics(prediction, images, normals)
         metrics["energy_kept"] = energy_kept(prediction, images, normals)  # the log loss's bias (sg_fit)
         if kind == "lightfield" and encoder != "sh_l2":
-            if encoder == "cnn":  # the guard measured the amplitudes it kept
+            if encoder == "cnn":  # the guards measured what they kept
                 metrics["shaded_error"] = final_shaded_error
+                metrics["interpolated_shaded_error"] = interpolated
                 metrics["amplitude_refit"] = refit_report
             else:
                 metrics["shaded_error"] = shaded_errors(images, normals, axis, sharpness, amplitude, atlas,
                                                         texel_info, texels, roughness)
+                metrics["interpolated_shaded_error"] = interpolated_errors(images, normals, axis, sharpness, amplitude,
+                                                                           atlas, texel_info, texels, roughness)
         picture = f"train_{kind}.png"  # rendered (left) | SG reconstruction (right), 16 texels each
         above = above_horizon_fraction(normals, images.shape[1]).reshape(prediction.shape[:3])[..., None]
         target_mosaic, predicted_mosaic = preview_mosaic(images), preview_mosaic(prediction * above)

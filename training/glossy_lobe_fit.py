@@ -1,0 +1,98 @@
+"""Refit SG axes, sharpness and amplitudes through the node group's glossy (torch; docs/design-additions.md §5).
+
+The amplitude refit (glossy_refit) keeps the CNN's axes and sharpness, so the lobes stay where the log-space fit
+put them. This one moves them too: Adam on every parameter of one material's texels at once, minimising
+
+    sum_t  sum_v |sum_k glossy_k(v) - integral L_t(l) f(l, v) (n.l) dl|^2 / sum_v |integral ...|^2
+      + LOBE_REFIT_SMOOTHNESS sum_{t,u atlas neighbours} |change_t - change_u|^2
+
+with glossy_k sg_torch.sg_glossy (the node group's closed form), the target the exact GGX reflection of the
+rendered light field over glossy_refit's views (F0 = 1), and change the move from the start values in the encoding
+the shader blends (unit axis, log sharpness, log amplitude). The smoothness term is what keeps bilinear lookups
+right: the shader blends neighbouring texels' parameters slot by slot, and lobes fitted texel by texel blend into
+wrong ones (Production spheres, roughness 0.5, FLIP of the glossy at texel centres 0.078 -> 0.056 without the
+term, but 0.078 -> 0.088 once blended; with it 0.057 and 0.058).
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from shaders.sg_math import SHARPNESS_MAX, SHARPNESS_MIN
+from training import sg_torch
+from training.glossy_refit import (REFIT_BATCH, atlas_neighbour_pairs, hemisphere_views, reflected_radiance,
+                                   refit_min_roughness)
+
+LOBE_REFIT_RATE = 0.02  # Adam's step on unit-axis components, log sharpness and log amplitude
+LOBE_REFIT_SMOOTHNESS = 0.2  # weight of the neighbours' differing changes (1.0 held the fit back: 0.116 vs 0.100)
+LOBE_REFIT_BATCH = 128  # texels per forward and backward pass (memory: ~0.3 GB at 16 SGs)
+AMPLITUDE_FLOOR = 1e-3  # of a texel's largest amplitude: log amplitudes start at least here
+LOBE_REFIT_LOBE_PIXELS = 1.5  # light-field pixels the GGX lobe must span (the amplitude refit needs 0.5)
+
+
+def lobe_refit_min_roughness(resolution: int) -> float:
+    """The least roughness the lobe refit is used at: 0.41 at R = 32, 0.58 at R = 16. Free lobes follow the
+    quadrature's aliasing further than amplitudes do (Production spheres, R = 32, error between texels: roughness
+    0.4, a 1.45-pixel lobe, 0.170 -> 0.183, and the guard kept the old SGs; roughness 0.5, 2.3 pixels,
+    0.140 -> 0.100)."""
+    return refit_min_roughness(resolution, LOBE_REFIT_LOBE_PIXELS)
+
+
+def lobe_refit_steps(images: np.ndarray, normals: np.ndarray, texels: np.ndarray, axis: np.ndarray,
+                     sharpness: np.ndarray, amplitude: np.ndarray, roughness: np.ndarray, lobe_count: int,
+                     steps: int, device: str = "cpu"):
+    """One material's texels: light fields images (T, R, R, C), normals (T, 3), atlas texels (T, 2) [row, col],
+    start SGs axis (T, N, 3), sharpness (T, N), amplitude (T, N, C), roughness (T,). SGs past lobe_count are left
+    as they are (zero). A generator: yields the fraction of steps done, returns (axis, sharpness, amplitude) as
+    float32 arrays of the input's shapes."""
+    dtype = torch.float32
+    t, n = np.shape(sharpness)
+    k = int(min(max(lobe_count, 0), n))
+    result = [np.array(axis, np.float32), np.array(sharpness, np.float32), np.array(amplitude, np.float32)]
+    if t == 0 or k == 0 or steps <= 0:
+        return tuple(result)
+    views = hemisphere_views(normals)
+    target = np.concatenate([reflected_radiance(images[s:s + REFIT_BATCH], normals[s:s + REFIT_BATCH],
+                                                views[s:s + REFIT_BATCH], roughness[s:s + REFIT_BATCH])
+                             for s in range(0, t, REFIT_BATCH)])
+
+    def tensor(x):
+        return torch.as_tensor(np.asarray(x), dtype=dtype, device=device)
+
+    target = tensor(target)
+    target_norm = (target ** 2).sum(dim=(1, 2)).clamp_min(1e-12)
+    normal, view = tensor(normals)[:, None, None], tensor(views)[:, :, None]
+    rough, f0 = tensor(roughness)[:, None, None], torch.ones(1, dtype=dtype, device=device)
+    start_axis = sg_torch.safe_normalize(tensor(axis[:, :k]))
+    start_log_sharpness = torch.log(tensor(sharpness[:, :k]).clamp(SHARPNESS_MIN, SHARPNESS_MAX))
+    start_amplitude = tensor(amplitude[:, :k]).clamp_min(0)
+    floor = AMPLITUDE_FLOOR * start_amplitude.amax(dim=(1, 2), keepdim=True).clamp_min(1e-12)
+    start_log_amplitude = torch.log(torch.maximum(start_amplitude, floor))
+    params = [p.clone().requires_grad_() for p in (start_axis, start_log_sharpness, start_log_amplitude)]
+    starts = (start_axis, start_log_sharpness, start_log_amplitude)
+    pairs = torch.as_tensor(atlas_neighbour_pairs(np.asarray(texels)), device=device)
+    optimiser = torch.optim.Adam(params, lr=LOBE_REFIT_RATE)
+
+    def lobes(index):
+        return (sg_torch.safe_normalize(params[0][index]),
+                torch.exp(params[1][index]).clamp(SHARPNESS_MIN, SHARPNESS_MAX), torch.exp(params[2][index]))
+
+    for step in range(steps):
+        optimiser.zero_grad()
+        if len(pairs):
+            a, b = pairs[:, 0], pairs[:, 1]
+            smoothness = sum((((p - p0)[a] - (p - p0)[b]) ** 2).sum() for p, p0 in zip(params, starts))
+            (LOBE_REFIT_SMOOTHNESS * smoothness).backward()
+        for s in range(0, t, LOBE_REFIT_BATCH):
+            index = slice(s, s + LOBE_REFIT_BATCH)
+            lobe_axis, lobe_sharpness, lobe_amplitude = lobes(index)
+            shaded = sg_torch.sg_glossy(lobe_axis[:, None], lobe_sharpness[:, None], lobe_amplitude[:, None],
+                                        normal[index], view[index], rough[index], f0).sum(dim=2)
+            loss = (((shaded - target[index]) ** 2).sum(dim=(1, 2)) / target_norm[index]).sum()
+            loss.backward()
+        optimiser.step()
+        yield (step + 1) / steps
+    with torch.no_grad():
+        for out, value in zip(result, lobes(slice(None))):
+            out[:, :k] = value.cpu().numpy()
+    return tuple(result)
