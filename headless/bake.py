@@ -155,15 +155,15 @@ def load_scene(ns):
 
 
 def _shaded_error_summary(lightfield_metrics: dict) -> str:
-    """'; glossy error 0.08 (CNN amplitudes 0.17)': the mean over materials of the error of the node group's
-    glossy against the exact reflection of the light field, after and before the amplitude refit, the materials
+    """'; glossy error 0.08 (the CNN's SGs 0.17)': the mean over materials of the error of the node group's
+    glossy against the exact reflection of the light field, after the refits and with the CNN's SGs, the materials
     whose refit was not kept, and with the lobe refit the same error between texels before and after it."""
     after = lightfield_metrics.get("shaded_error", {})
     before = lightfield_metrics.get("amplitude_refit", {}).get("shaded_error_before", {})
     if not after:
         return ""
     text = f"; glossy error {sum(after.values()) / len(after):.4f}"
-    text += f" (CNN amplitudes {sum(before.values()) / len(before):.4f})" if before else ""
+    text += f" (the CNN's SGs {sum(before.values()) / len(before):.4f})" if before else ""
     refit = lightfield_metrics.get("amplitude_refit", {})
     reverted = refit.get("reverted_for", {})
     text += f"; refit not kept for {', '.join(reverted)} (it raised the error)" if reverted else ""

@@ -27,6 +27,12 @@ def _image(path: Path) -> str:
     return f'<img src="data:image/png;base64,{data}" style="max-width:100%;image-rendering:pixelated">'
 
 
+def _error_rows(label: str, errors: dict, before: dict, before_label: str) -> list:
+    """One row per material: its error, and the error before a refit where there is one."""
+    return [(f"{label}, {material}", error if material not in before else
+             f"{error:.4f} ({before_label} {before[material]:.4f})") for material, error in errors.items()]
+
+
 def write_report_html(out_dir) -> Path:
     out_dir = Path(out_dir)
     report = json.loads((out_dir / "report.json").read_text()) if (out_dir / "report.json").is_file() else {}
@@ -71,10 +77,8 @@ def write_report_html(out_dir) -> Path:
     if "midpoint" in lightfield:
         rows.append(("held-out midpoint RMSE", lightfield["midpoint"]["rmse"]))
     refit = lightfield.get("amplitude_refit", {})
-    for material, error in lightfield.get("shaded_error", {}).items():
-        before = refit.get("shaded_error_before", {}).get(material)
-        rows.append((f"glossy error through the node group, {material}", error if before is None else
-                     f"{error:.4f} (CNN amplitudes {before:.4f})"))
+    rows += _error_rows("glossy error through the node group", lightfield.get("shaded_error", {}),
+                        refit.get("shaded_error_before", {}), "the CNN's SGs")
     if refit:
         reverted = refit.get("reverted_for", {})
         rows.append(("amplitude refit", f"{refit['texels']} texels at roughness >= {refit['min_roughness']} in "
@@ -82,14 +86,12 @@ def write_report_html(out_dir) -> Path:
                                             f"; not kept for {material} (it raised the error to {error:.4f})"
                                             for material, error in reverted.items())))
     lobes = refit.get("lobes", {})
-    for material, error in lightfield.get("interpolated_shaded_error", {}).items():
-        before = lobes.get("interpolated_error_before", {}).get(material)
-        rows.append((f"glossy error between texels (SGs blended), {material}", error if before is None else
-                     f"{error:.4f} (before the lobe refit {before:.4f})"))
+    rows += _error_rows("glossy error between texels (SGs blended)", lightfield.get("interpolated_shaded_error", {}),
+                        lobes.get("interpolated_error_before", {}), "before the lobe refit")
     if lobes:
         rows.append(("lobe refit (axes, sharpness, amplitudes)",
-                     f"{lobes['steps']} steps on {lobes['texels']} texels at roughness >= {lobes['min_roughness']} in "
-                     f"{lobes['seconds']:.1f} s"
+                     f"{lobes.get('steps')} steps on {lobes.get('texels')} texels at roughness >= "
+                     f"{lobes.get('min_roughness')} in {lobes.get('seconds', 0):.1f} s"
                      + "".join(f"; not kept for {material} (it raised the error between texels to {error:.4f})"
                                for material, error in lobes.get("reverted_for", {}).items())))
     for key, value in rows:

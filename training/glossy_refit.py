@@ -131,18 +131,9 @@ def refit_steps(images: np.ndarray, normals: np.ndarray, axis: np.ndarray, sharp
 def shaded_error(images, normals, axis, sharpness, amplitude, roughness) -> float:
     """Relative RMSE, over held-out views (HELD_OUT_VIEW_*), between the node group's glossy of the SGs and the
     exact GGX reflection of the rendered light fields: the error a viewer of the baked surface sees, before
-    interpolation between texels."""
-    views = hemisphere_views(normals, HELD_OUT_VIEW_COSINES, HELD_OUT_VIEW_AZIMUTHS)
-    error = norm = 0.0
-    for start in range(0, len(images), REFIT_BATCH):
-        s = slice(start, start + REFIT_BATCH)
-        rough = np.broadcast_to(np.asarray(roughness, np.float64), (len(images),))[s]
-        target = reflected_radiance(images[s], normals[s], views[s], rough)
-        shaded = np.einsum("bvn,bnc->bvc", closed_form_responses(axis[s], sharpness[s], normals[s], views[s], rough),
-                           np.asarray(amplitude[s], np.float64))
-        error += float(((shaded - target) ** 2).sum())
-        norm += float((target ** 2).sum())
-    return float(np.sqrt(error / max(norm, 1e-300)))
+    interpolation between texels (interpolated_shaded_error of each texel with itself)."""
+    each = np.arange(len(images))
+    return interpolated_shaded_error(images, normals, axis, sharpness, amplitude, roughness, each, each)
 
 
 def atlas_neighbour_pairs(texels: np.ndarray) -> np.ndarray:
@@ -160,18 +151,18 @@ def interpolated_shaded_error(images, normals, axis, sharpness, amplitude, rough
     the two light fields' mean, at the renormalised mean normal. What a viewer sees between texels: SGs fitted
     texel by texel can each be right and still blend into wrong lobes."""
     rough = np.broadcast_to(np.asarray(roughness, np.float64), (len(images),))
-    normal = unit_midpoint(normals[a], normals[b])
-    blended = midpoint_parameters(np.asarray(axis, np.float64), np.asarray(sharpness, np.float64),
-                                  np.asarray(amplitude, np.float64), a, b)
-    light = 0.5 * (np.asarray(images[a], np.float64) + images[b])
-    midpoint_roughness = 0.5 * (rough[a] + rough[b])
-    views = hemisphere_views(normal, HELD_OUT_VIEW_COSINES, HELD_OUT_VIEW_AZIMUTHS)
+    axis, sharpness, amplitude = (np.asarray(x, np.float64) for x in (axis, sharpness, amplitude))
     error = norm = 0.0
     for start in range(0, len(a), REFIT_BATCH):
-        s = slice(start, start + REFIT_BATCH)
-        target = reflected_radiance(light[s], normal[s], views[s], midpoint_roughness[s])
-        responses = closed_form_responses(blended[0][s], blended[1][s], normal[s], views[s], midpoint_roughness[s])
-        shaded = np.einsum("bvn,bnc->bvc", responses, blended[2][s])
+        i, j = a[start:start + REFIT_BATCH], b[start:start + REFIT_BATCH]
+        normal = unit_midpoint(normals[i], normals[j])
+        views = hemisphere_views(normal, HELD_OUT_VIEW_COSINES, HELD_OUT_VIEW_AZIMUTHS)
+        midpoint_roughness = 0.5 * (rough[i] + rough[j])
+        target = reflected_radiance(0.5 * (np.asarray(images[i], np.float64) + images[j]), normal, views,
+                                    midpoint_roughness)
+        blended_axis, blended_sharpness, blended_amplitude = midpoint_parameters(axis, sharpness, amplitude, i, j)
+        responses = closed_form_responses(blended_axis, blended_sharpness, normal, views, midpoint_roughness)
+        shaded = np.einsum("bvn,bnc->bvc", responses, blended_amplitude)
         error += float(((shaded - target) ** 2).sum())
         norm += float((target ** 2).sum())
     return float(np.sqrt(error / max(norm, 1e-300)))
