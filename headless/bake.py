@@ -86,12 +86,15 @@ class Reporter:
     def progress(self, stage: str, fraction: float, message: str = ""):
         """A progress bar with ETA on stderr for people; a JSON line for machines."""
         now = time.monotonic()
-        start = self._stage_start.setdefault(stage, now)
+        fraction = min(max(float(fraction), 0.0), 1.0)
+        # The rate since this stage began: the bar's fraction covers the whole bake, and a stage that resumes
+        # finished work (a saved checkpoint) jumps ahead at once.
+        start, start_fraction = self._stage_start.setdefault(stage, (now, fraction))
         if not self.as_json and fraction < 1 and now - getattr(self, "_last_bar", 0.0) < 0.25:
             return  # a person reads a few updates a second, not every epoch
         self._last_bar = now
-        fraction = min(max(float(fraction), 0.0), 1.0)
-        eta = (now - start) * (1 - fraction) / fraction if fraction > 0 else None
+        done = fraction - start_fraction
+        eta = (now - start) * (1 - fraction) / done if done > 1e-6 and now > start else None
         if self.as_json:
             self.event("progress", stage=stage, fraction=round(fraction, 4), message=message,
                        eta_s=None if eta is None else round(eta, 1))

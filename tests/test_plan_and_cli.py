@@ -131,3 +131,17 @@ def test_cli_empty_blend_is_one_line_and_nonzero(tmp_path):
     out = _bake("--blend", str(empty), "--out", str(tmp_path / "o"))
     assert out.returncode == 1
     assert out.stderr.strip().splitlines() == ["error: nothing to bake: the scene has no mesh objects (it is empty)"]
+
+
+def test_cli_eta_counts_only_the_current_stage_progress(monkeypatch, capsys):
+    """The bar's fraction covers the whole bake: a stage that starts at 50 % and reaches 60 % in 10 s has 40 s
+    left, not the 6.7 s that dividing by the whole bake's fraction would claim."""
+    from headless import bake
+
+    clock = iter([100.0, 110.0])
+    monkeypatch.setattr(bake.time, "monotonic", lambda: next(clock))
+    reporter = bake.Reporter(as_json=True)
+    reporter.progress("train", 0.5, "start")
+    reporter.progress("train", 0.6, "later")
+    events = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert events[0]["eta_s"] is None and events[1]["eta_s"] == pytest.approx(40.0)
