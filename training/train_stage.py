@@ -87,14 +87,15 @@ def texel_lobe_counts(atlas, texel_info: dict, texels: np.ndarray, plan: BakePla
     return _per_texel(atlas, texel_info, texels, by_name, most, np.int64)
 
 
-def _error_members(atlas, texel_info: dict, texels, roughness, resolution: int):
+def _error_members(atlas, texel_info: dict, texels, roughness, resolution: int, only=None):
     """Material name -> indices of its texels rough enough for the quadrature (glossy_refit.refit_min_roughness:
-    sharper lobes fall between its pixel centres)."""
+    sharper lobes fall between its pixel centres); of the materials named in `only` if given."""
     from training.glossy_refit import refit_min_roughness
 
     material_ids = texel_material_ids(atlas, texels)
     resolved = roughness >= refit_min_roughness(resolution)
-    members = {m["name"]: np.flatnonzero((material_ids == m["id"]) & resolved) for m in texel_info["materials"]}
+    members = {m["name"]: np.flatnonzero((material_ids == m["id"]) & resolved) for m in texel_info["materials"]
+               if only is None or m["name"] in only}
     return {name: index for name, index in members.items() if len(index)}
 
 
@@ -102,14 +103,16 @@ def _evenly(items: np.ndarray, count: int) -> np.ndarray:
     return items[np.linspace(0, len(items) - 1, min(len(items), count)).astype(int)]
 
 
-def shaded_errors(images, normals, axis, sharpness, amplitude, atlas, texel_info: dict, texels, roughness) -> dict:
+def shaded_errors(images, normals, axis, sharpness, amplitude, atlas, texel_info: dict, texels, roughness,
+                  only=None) -> dict:
     """Material name -> relative RMSE between the node group's glossy of the SGs and the exact GGX reflection of
     the rendered light fields, on views the refit never fits (glossy_refit.shaded_error), over up to
-    ERROR_TEXELS_PER_MATERIAL of the material's texels rough enough for the quadrature."""
+    ERROR_TEXELS_PER_MATERIAL of the material's texels rough enough for the quadrature (of the materials named in
+    `only` if given)."""
     from training.glossy_refit import ERROR_TEXELS_PER_MATERIAL, shaded_error
 
     errors = {}
-    for name, members in _error_members(atlas, texel_info, texels, roughness, images.shape[1]).items():
+    for name, members in _error_members(atlas, texel_info, texels, roughness, images.shape[1], only).items():
         pick = _evenly(members, ERROR_TEXELS_PER_MATERIAL)
         errors[name] = round(shaded_error(images[pick], normals[pick], axis[pick], sharpness[pick], amplitude[pick],
                                           roughness[pick]), 4)
@@ -117,14 +120,14 @@ def shaded_errors(images, normals, axis, sharpness, amplitude, atlas, texel_info
 
 
 def interpolated_errors(images, normals, axis, sharpness, amplitude, atlas, texel_info: dict, texels,
-                        roughness) -> dict:
+                        roughness, only=None) -> dict:
     """Material name -> the same error halfway between atlas neighbours, with the SGs blended as the node group's
     bilinear lookup blends them (glossy_refit.interpolated_shaded_error), over up to ERROR_TEXELS_PER_MATERIAL
-    neighbour pairs of the material's texels."""
+    neighbour pairs of the material's texels (of the materials named in `only` if given)."""
     from training.glossy_refit import ERROR_TEXELS_PER_MATERIAL, atlas_neighbour_pairs, interpolated_shaded_error
 
     errors = {}
-    for name, members in _error_members(atlas, texel_info, texels, roughness, images.shape[1]).items():
+    for name, members in _error_members(atlas, texel_info, texels, roughness, images.shape[1], only).items():
         pairs = atlas_neighbour_pairs(texels[members])
         if len(pairs):
             pick = members[_evenly(pairs, ERROR_TEXELS_PER_MATERIAL)]
@@ -302,7 +305,8 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
                             yield (k + sum(shares[:2]) + shares[2] * fraction) / len(kinds), \
                                 f"{kind}: lobes refitted through the glossy, {100 * fraction:.0f} %"
                         done += len(group)
-                    lobe_after = interpolated_errors(images, normals, *refitted, atlas, texel_info, texels, roughness)
+                    lobe_after = interpolated_errors(images, normals, *refitted, atlas, texel_info, texels, roughness,
+                                                     only=groups)
                     lobe_before = {name: error for name, error in interpolated.items() if name in groups}
                     (axis, sharpness, amplitude), lobe_kept, lobe_reverted = keep_refit_where_better(
                         (axis, sharpness, amplitude), refitted, lobe_before, lobe_after, atlas, texel_info, texels)
@@ -313,8 +317,9 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
                                              "reverted_for": lobe_reverted}
                     interpolated = {name: lobe_after[name] if name in lobe_kept else error
                                     for name, error in interpolated.items()}
-                    final_shaded_error = shaded_errors(images, normals, axis, sharpness, amplitude, atlas, texel_info,
-                                                       texels, roughness)
+                    if lobe_kept:
+                        final_shaded_error.update(shaded_errors(images, normals, axis, sharpness, amplitude, atlas,
+                                                                texel_info, texels, roughness, only=lobe_kept))
         prediction = eval_sh(coefficients, images.shape[1]) if encoder == "sh_l2" else \
             reconstruct(axis, sharpness, amplitude, images.shape[1])
         metrics = error_metrics(prediction, images, normals)
