@@ -131,8 +131,8 @@ def test_refit_is_kept_per_material_only_where_it_lowers_the_held_out_error():
     info = {"materials": [{"id": 1, "name": "better"}, {"id": 2, "name": "worse"}, {"id": 3, "name": "unmeasured"}]}
     trained = np.ones((6, 2, 3))
     refitted = np.full((6, 2, 3), 2.0)
-    result, kept, reverted = keep_refit_where_better(trained, refitted, {"better": 0.3, "worse": 0.2},
-                                                     {"better": 0.1, "worse": 0.25}, atlas, info, texels)
+    (result,), kept, reverted = keep_refit_where_better((trained,), (refitted,), {"better": 0.3, "worse": 0.2},
+                                                        {"better": 0.1, "worse": 0.25}, atlas, info, texels)
     assert kept == ["better"] and reverted == {"worse": 0.25}
     assert (result[:2] == 2).all() and (result[2:] == 1).all()
     assert (trained == 1).all()  # inputs untouched

@@ -136,16 +136,15 @@ def interpolated_errors(images, normals, axis, sharpness, amplitude, atlas, texe
     return errors
 
 
-def keep_refit_where_better(trained, refitted, before: dict, after: dict, atlas, texel_info: dict, texels):
+def keep_refit_where_better(trained: tuple, refitted: tuple, before: dict, after: dict, atlas, texel_info: dict,
+                            texels):
     """Per material, the refitted values where they lower the held-out glossy error (`before` and `after` map
     material name -> error), the trained ones elsewhere: (values, [materials kept], {material: error the refit
-    had}). Values are an array (T, ...) or a tuple of them. Where the GGX lobe is barely wider than a light-field
-    pixel, the quadrature's target aliases and the refit can fit that (measured on the Production spheres, R = 32:
-    roughness 0.3 went 0.29 -> 0.34 on held-out views, FLIP 0.077 -> 0.092)."""
+    had}); values are tuples of (T, ...) arrays. Where the GGX lobe is barely wider than a light-field pixel, the
+    quadrature's target aliases and the refit can fit that (measured on the Production spheres, R = 32: roughness
+    0.3 went 0.29 -> 0.34 on held-out views, FLIP 0.077 -> 0.092)."""
     material_ids = texel_material_ids(atlas, texels)
-    single = not isinstance(trained, tuple)
-    result = [np.array(v, copy=True) for v in ((trained,) if single else trained)]
-    refitted = (refitted,) if single else refitted
+    result = tuple(np.array(value, copy=True) for value in trained)
     kept, reverted = [], {}
     for material in texel_info["materials"]:
         name = material["name"]
@@ -158,7 +157,18 @@ def keep_refit_where_better(trained, refitted, before: dict, after: dict, atlas,
             kept.append(name)
         else:
             reverted[name] = after[name]
-    return (result[0] if single else tuple(result)), kept, reverted
+    return result, kept, reverted
+
+
+def _relayed(steps, progress):
+    """Runs a generator that yields fractions done and returns a value: yields progress(fraction) for each
+    fraction, returns the value."""
+    while True:
+        try:
+            fraction = next(steps)
+        except StopIteration as finished:
+            return finished.value
+        yield progress(fraction)
 
 
 # Shares of the light field's progress bar: training, the amplitude refit, the lobe refit (when it runs).
@@ -262,20 +272,15 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
                                        roughness)
                 least = refit_min_roughness(images.shape[1])
                 chosen = np.flatnonzero(roughness >= least)
-                refit = refit_steps(images[chosen], normals[chosen], axis[chosen], sharpness[chosen],
-                                    amplitude[chosen], roughness[chosen], counts[chosen])
-                while True:
-                    try:
-                        fraction = next(refit)
-                    except StopIteration as finished:
-                        refitted = amplitude.copy()
-                        refitted[chosen] = finished.value
-                        break
-                    yield (k + training_share + shares[1] * fraction) / len(kinds), \
-                        f"{kind}: amplitudes refitted through the glossy, {100 * fraction:.0f} %"
+                refitted = amplitude.copy()
+                refitted[chosen] = yield from _relayed(
+                    refit_steps(images[chosen], normals[chosen], axis[chosen], sharpness[chosen], amplitude[chosen],
+                                roughness[chosen], counts[chosen]),
+                    lambda fraction: ((k + training_share + shares[1] * fraction) / len(kinds),
+                                      f"{kind}: amplitudes refitted through the glossy, {100 * fraction:.0f} %"))
                 after = shaded_errors(images, normals, axis, sharpness, refitted, atlas, texel_info, texels, roughness)
-                amplitude, kept, reverted = keep_refit_where_better(amplitude, refitted, before, after, atlas,
-                                                                    texel_info, texels)
+                (amplitude,), kept, reverted = keep_refit_where_better((amplitude,), (refitted,), before, after, atlas,
+                                                                       texel_info, texels)
                 final_shaded_error = {name: after[name] if name in kept else error for name, error in before.items()}
                 refit_report = {"seconds": round(time.perf_counter() - refit_start, 2), "texels": len(chosen),
                                 "min_roughness": round(least, 3), "shaded_error_before": before,
@@ -292,18 +297,17 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
                     groups = {name: group for name, group in groups.items() if len(group)}
                     lobe_texels, done = sum(map(len, groups.values())), 0
                     for group in groups.values():
-                        lobe_fit = lobe_refit_steps(images[group], normals[group], texels[group], axis[group],
-                                                    sharpness[group], amplitude[group], roughness[group],
-                                                    int(counts[group].max()), lobe_steps, device)
-                        while True:
-                            try:
-                                fraction = (done + len(group) * next(lobe_fit)) / lobe_texels
-                            except StopIteration as finished:
-                                for value, new in zip(refitted, finished.value):
-                                    value[group] = new
-                                break
-                            yield (k + sum(shares[:2]) + shares[2] * fraction) / len(kinds), \
-                                f"{kind}: lobes refitted through the glossy, {100 * fraction:.0f} %"
+                        def lobe_progress(fraction, done=done, size=len(group)):
+                            share = (done + size * fraction) / lobe_texels
+                            return ((k + sum(shares[:2]) + shares[2] * share) / len(kinds),
+                                    f"{kind}: lobes refitted through the glossy, {100 * share:.0f} %")
+
+                        fitted = yield from _relayed(
+                            lobe_refit_steps(images[group], normals[group], texels[group], axis[group],
+                                             sharpness[group], amplitude[group], roughness[group],
+                                             int(counts[group].max()), lobe_steps, device), lobe_progress)
+                        for value, new in zip(refitted, fitted):
+                            value[group] = new
                         done += len(group)
                     lobe_after = interpolated_errors(images, normals, *refitted, atlas, texel_info, texels, roughness,
                                                      only=groups)
