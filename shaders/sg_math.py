@@ -45,6 +45,11 @@ IRRADIANCE_SERIES_MAX_SHARPNESS = 4.0  # below: Legendre series; from here on: H
 
 
 def dot(a, b):
+    """Sum of products over the last axis. Written out for 3-vectors, bit for bit the same: numpy's reduction over
+    a length-3 axis is about 10x slower."""
+    a, b = np.asarray(a), np.asarray(b)
+    if a.shape[-1:] == b.shape[-1:] == (3,):
+        return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
     return np.sum(a * b, axis=-1)
 
 
@@ -177,7 +182,9 @@ def sg_asg_convolve(axis, sharpness, amplitude, asg: ASG):
 
 # --- Microfacet terms --------------------------------------------------------------------------
 def fresnel_schlick(f0, cos_theta):
-    return f0 + (1 - f0) * ((1 - np.clip(cos_theta, 0, 1)) ** 5)[..., None]
+    t = 1 - np.clip(cos_theta, 0, 1)
+    t2 = t * t
+    return f0 + (1 - f0) * (t2 * t2 * t)[..., None]  # t^5 by products (numpy's power is several times slower)
 
 
 def smith_lambda_ggx(cos_theta, alpha):
@@ -200,12 +207,18 @@ def ggx_ndf(ndoth, alpha):
 def ggx_brdf_cos(light, view, normal, roughness, f0):
     """Reference integrand f(l, v) (n.l)_+ for GGX with Schlick Fresnel and height-correlated Smith."""
     alpha = ggx_alpha(roughness)
-    ndotl = dot(normal, light)
-    ndotv = np.clip(dot(normal, view), NDOTV_MIN, 1)
-    h = safe_normalize(light + view)
-    d = ggx_ndf(dot(normal, h), alpha)
+    light, view, normal = np.asarray(light), np.asarray(view), np.asarray(normal)
+    ndotl, ndotv_signed, vdotv = dot(normal, light), dot(normal, view), dot(view, view)
+    ndotv = np.clip(ndotv_signed, NDOTV_MIN, 1)
+    # the half vector h = safe_normalize(l + v) enters only through n.h and v.h, taken without forming h
+    ldotv = dot(light, view)
+    length = np.sqrt(np.maximum(dot(light, light) + 2 * ldotv + vdotv, AXIS_EPS * AXIS_EPS))
+    degenerate = length <= AXIS_EPS  # safe_normalize's fallback h = +Z
+    ndoth = np.where(degenerate, normal[..., 2], (ndotl + ndotv_signed) / length)
+    vdoth = np.where(degenerate, view[..., 2], (ldotv + vdotv) / length)
+    d = ggx_ndf(ndoth, alpha)
     g = smith_g2_ggx(np.maximum(ndotl, NDOTV_MIN), ndotv, alpha)
-    f = fresnel_schlick(f0, dot(view, h))
+    f = fresnel_schlick(f0, vdoth)
     return np.where((ndotl > 0)[..., None], f * (d * g / (4 * ndotv))[..., None], 0.0)
 
 
