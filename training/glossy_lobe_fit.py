@@ -20,8 +20,8 @@ import torch
 
 from shaders.sg_math import SHARPNESS_MAX, SHARPNESS_MIN
 from training import sg_torch
-from training.glossy_refit import (atlas_neighbour_pairs, hemisphere_views, refit_min_roughness, run_to_end,
-                                   target_steps)
+from training.glossy_refit import (REFIT_BATCH, atlas_neighbour_pairs, hemisphere_views, reflected_radiance,
+                                   refit_min_roughness)
 
 LOBE_REFIT_RATE = 0.02  # Adam's step on unit-axis components, log sharpness and log amplitude
 LOBE_REFIT_SMOOTHNESS = 0.2  # weight of the neighbours' differing changes (1.0 held the fit back: 0.116 vs 0.100)
@@ -31,21 +31,20 @@ LOBE_REFIT_LOBE_PIXELS = 1.5  # light-field pixels the GGX lobe must span (the a
 
 
 def lobe_refit_min_roughness(resolution: int) -> float:
-    """The least roughness the lobe refit is used at: 0.41 at R = 32, 0.58 at R = 16. Sharper free lobes, fitted
-    texel by texel, blend worse between texels, even against the pixel-integrated target (Production spheres,
-    R = 32, error between texels: roughness 0.3, a 0.8-pixel lobe, 0.218 -> 0.294; 0.4, 1.45 pixels,
-    0.142 -> 0.147; both reverted by the guard; 0.5, 2.3 pixels, 0.137 -> 0.097, kept)."""
+    """The least roughness the lobe refit is used at: 0.41 at R = 32, 0.58 at R = 16. Free lobes follow the
+    quadrature's aliasing further than amplitudes do (Production spheres, R = 32, error between texels: roughness
+    0.4, a 1.45-pixel lobe, 0.170 -> 0.183, and the guard kept the old SGs; roughness 0.5, 2.3 pixels,
+    0.140 -> 0.100)."""
     return refit_min_roughness(resolution, LOBE_REFIT_LOBE_PIXELS)
 
 
 def lobe_refit_steps(images: np.ndarray, normals: np.ndarray, texels: np.ndarray, axis: np.ndarray,
                      sharpness: np.ndarray, amplitude: np.ndarray, roughness: np.ndarray, lobe_count: int,
-                     steps: int, device: str = "cpu", targets: np.ndarray | None = None):
+                     steps: int, device: str = "cpu"):
     """One material's texels: light fields images (T, R, R, C), normals (T, 3), atlas texels (T, 2) [row, col],
     start SGs axis (T, N, 3), sharpness (T, N), amplitude (T, N, C), roughness (T,). SGs past lobe_count are left
-    as they are (zero). `targets` are glossy_refit.target_steps' (computed here when not given). A generator:
-    yields the fraction of steps done, returns (axis, sharpness, amplitude) as float32 arrays of the input's
-    shapes."""
+    as they are (zero). A generator: yields the fraction of steps done, returns (axis, sharpness, amplitude) as
+    float32 arrays of the input's shapes."""
     dtype = torch.float32
     t, n = np.shape(sharpness)
     k = int(min(max(lobe_count, 0), n))
@@ -53,7 +52,9 @@ def lobe_refit_steps(images: np.ndarray, normals: np.ndarray, texels: np.ndarray
     if t == 0 or k == 0 or steps <= 0:
         return tuple(result)
     views = hemisphere_views(normals)
-    target = targets if targets is not None else run_to_end(target_steps(images, normals, roughness))
+    target = np.concatenate([reflected_radiance(images[s:s + REFIT_BATCH], normals[s:s + REFIT_BATCH],
+                                                views[s:s + REFIT_BATCH], roughness[s:s + REFIT_BATCH])
+                             for s in range(0, t, REFIT_BATCH)])
 
     def tensor(x):
         return torch.as_tensor(np.asarray(x), dtype=dtype, device=device)

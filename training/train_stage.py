@@ -88,8 +88,8 @@ def texel_lobe_counts(atlas, texel_info: dict, texels: np.ndarray, plan: BakePla
 
 
 def _error_members(atlas, texel_info: dict, texels, roughness, resolution: int, only=None):
-    """Material name -> indices of its texels in the refits' scope (glossy_refit.refit_min_roughness); of the
-    materials named in `only` if given."""
+    """Material name -> indices of its texels rough enough for the quadrature (glossy_refit.refit_min_roughness:
+    sharper lobes fall between its pixel centres); of the materials named in `only` if given."""
     from training.glossy_refit import refit_min_roughness
 
     material_ids = texel_material_ids(atlas, texels)
@@ -107,7 +107,7 @@ def shaded_errors(images, normals, axis, sharpness, amplitude, atlas, texel_info
                   only=None) -> dict:
     """Material name -> relative RMSE between the node group's glossy of the SGs and the exact GGX reflection of
     the rendered light fields, on views the refit never fits (glossy_refit.shaded_error), over up to
-    ERROR_TEXELS_PER_MATERIAL of the material's texels in the refits' scope (of the materials named in
+    ERROR_TEXELS_PER_MATERIAL of the material's texels rough enough for the quadrature (of the materials named in
     `only` if given)."""
     from training.glossy_refit import ERROR_TEXELS_PER_MATERIAL, shaded_error
 
@@ -140,8 +140,9 @@ def keep_refit_where_better(trained: tuple, refitted: tuple, before: dict, after
                             texels):
     """Per material, the refitted values where they lower the held-out glossy error (`before` and `after` map
     material name -> error), the trained ones elsewhere: (values, [materials kept], {material: error the refit
-    had}); values are tuples of (T, ...) arrays. A refit can lose on held-out views (Production spheres, R = 32:
-    the lobe refit at roughness 0.3 and 0.4, measured between texels: 0.218 -> 0.294 and 0.142 -> 0.147)."""
+    had}); values are tuples of (T, ...) arrays. Where the GGX lobe is barely wider than a light-field pixel, the
+    quadrature's target aliases and the refit can fit that (measured on the Production spheres, R = 32: roughness
+    0.3 went 0.29 -> 0.34 on held-out views, FLIP 0.077 -> 0.092)."""
     material_ids = texel_material_ids(atlas, texels)
     result = tuple(np.array(value, copy=True) for value in trained)
     kept, reverted = [], {}
@@ -172,8 +173,7 @@ def _relayed(steps, progress):
 
 # Shares of the light field's progress bar: training, the amplitude refit, the lobe refit (when it runs).
 PROGRESS_SHARES = (0.9, 0.1, 0.0)
-PROGRESS_SHARES_WITH_LOBE_REFIT = (0.5, 0.15, 0.35)
-TARGET_SHARE = 0.8  # of the amplitude refit's share: integrating the glossy target (glossy_refit.target_steps)
+PROGRESS_SHARES_WITH_LOBE_REFIT = (0.6, 0.05, 0.35)
 DEFAULT_REFIT_ROUGHNESS = 0.5  # texels of a material the plan does not list (none expected)
 
 
@@ -199,7 +199,7 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
 
     from training.baselines import bytes_per_texel_fixed_sg, bytes_per_texel_sh_l2, eval_sh, fit_fixed_sg, fit_sh_l2
     from training.glossy_lobe_fit import lobe_refit_min_roughness, lobe_refit_steps
-    from training.glossy_refit import refit_min_roughness, refit_steps, target_steps
+    from training.glossy_refit import refit_min_roughness, refit_steps
     from training.sg_fit import (LightFieldData, TrainConfig, Trainer, energy_kept, error_metrics,
                                  midpoint_parameters, pair_indices, reconstruct, unit_midpoint)
 
@@ -272,18 +272,11 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
                                        roughness)
                 least = refit_min_roughness(images.shape[1])
                 chosen = np.flatnonzero(roughness >= least)
-                chosen_targets = yield from _relayed(  # both refits fit it; most of the amplitude refit's time
-                    target_steps(images[chosen], normals[chosen], roughness[chosen]),
-                    lambda fraction: ((k + training_share + shares[1] * TARGET_SHARE * fraction) / len(kinds),
-                                      f"{kind}: glossy reflection of the light fields, {100 * fraction:.0f} %"))
-                targets = np.zeros((len(texels),) + chosen_targets.shape[1:])
-                targets[chosen] = chosen_targets
                 refitted = amplitude.copy()
                 refitted[chosen] = yield from _relayed(
                     refit_steps(images[chosen], normals[chosen], axis[chosen], sharpness[chosen], amplitude[chosen],
-                                roughness[chosen], counts[chosen], targets=targets[chosen]),
-                    lambda fraction: ((k + training_share + shares[1] * (TARGET_SHARE + (1 - TARGET_SHARE) * fraction))
-                                      / len(kinds),
+                                roughness[chosen], counts[chosen]),
+                    lambda fraction: ((k + training_share + shares[1] * fraction) / len(kinds),
                                       f"{kind}: amplitudes refitted through the glossy, {100 * fraction:.0f} %"))
                 after = shaded_errors(images, normals, axis, sharpness, refitted, atlas, texel_info, texels, roughness)
                 (amplitude,), kept, reverted = keep_refit_where_better((amplitude,), (refitted,), before, after, atlas,
@@ -298,8 +291,7 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
                     lobe_start = time.perf_counter()
                     refitted = (axis.copy(), sharpness.copy(), amplitude.copy())
                     material_ids = texel_material_ids(atlas, texels)
-                    rough_enough = np.intersect1d(chosen, np.flatnonzero(  # texels with a target
-                        roughness >= lobe_refit_min_roughness(images.shape[1])))
+                    rough_enough = np.flatnonzero(roughness >= lobe_refit_min_roughness(images.shape[1]))
                     groups = {m["name"]: np.intersect1d(rough_enough, np.flatnonzero(material_ids == m["id"]))
                               for m in texel_info["materials"]}
                     groups = {name: group for name, group in groups.items() if len(group)}
@@ -313,8 +305,7 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
                         fitted = yield from _relayed(
                             lobe_refit_steps(images[group], normals[group], texels[group], axis[group],
                                              sharpness[group], amplitude[group], roughness[group],
-                                             int(counts[group].max()), lobe_steps, device, targets[group]),
-                            lobe_progress)
+                                             int(counts[group].max()), lobe_steps, device), lobe_progress)
                         for value, new in zip(refitted, fitted):
                             value[group] = new
                         done += len(group)
