@@ -38,7 +38,7 @@ bench: $(STAMP)
 	$(PY) -m pip install --quiet -r requirements-bench.txt
 	$(PY) -m headless.bench --hair-data $(HAIR_DATA)
 
-# Reproduces models/hair_base*.onnx: ~270 pairs (about 35 min on 2 cores), then Base at 4 spp (20 min) and at
+# Reproduces models/hair_base*.onnx: ~270 pairs (55 min on 2 cores, measured), then Base at 4 spp (20 min) and at
 # 2 and 1 spp (8 min each). Resumable: rerun continues the dataset where it stopped.
 hair-model: $(STAMP)
 	$(PY) headless/hair_dataset.py --out $(HAIR_DATA) --pairs 240 --held-out 30 --reference-samples 192
