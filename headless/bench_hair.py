@@ -2,7 +2,7 @@
 
   inference   onnxruntime (CPU provider) time of each model at 1024x1024, and our renderer's time for the
               4-spp input of the `hair` demo at 1024x1024 (what the filter costs on top of the input) and
-              for 16 spp (unfiltered stochastic transparency's cost)
+              for 16 spp (unfiltered stochastic transparency's cost); its shadow maps' cost against one map
   quality     PSNR and FLIP against the Cycles reference, composited (hair colour x colour factor +
               highlight over grey) and tone-mapped alike, for: stochastic transparency at 4 and 16 spp
               unfiltered, our filter at 1, 2 and 4 spp, and Intel Open Image Denoise (pyoidn) on the
@@ -58,12 +58,16 @@ def bench_inference(models: dict, size: int = 1024, repeats: int = 3) -> list[di
         strands = hair.strands_from_objects(hair.hair_objects(scene), depsgraph)
         camera = hair.pinhole_camera(scene, depsgraph, width=size, height=size)
         to_light, _, _ = hair.key_light(scene, depsgraph, np.mean(strands.bounds(), axis=0))
+    hair_raster.render_stochastic(strands, camera, to_light, 1, shadow_maps=1)  # warm-up: first calls are slower
     start = time.perf_counter()
     render = hair_raster.render_stochastic(strands, camera, to_light, 4)
     input_s = time.perf_counter() - start
     start = time.perf_counter()
     hair_raster.render_stochastic(strands, camera, to_light, 16)
     input16_s = time.perf_counter() - start
+    start = time.perf_counter()
+    hair_raster.render_stochastic(strands, camera, to_light, 4, shadow_maps=1)
+    input_one_map_s = time.perf_counter() - start
     for spp, path in sorted(models.items()):
         hair_filter = load_filter(path)
         features = render.network_input(hair_filter.samples)
@@ -76,6 +80,7 @@ def bench_inference(models: dict, size: int = 1024, repeats: int = 3) -> list[di
         rows.append({"model": path.name, "spp": spp, "size": f"{size}x{size}",
                      "onnxruntime_cpu_s": round(float(np.median(times)), 3),
                      "stochastic_input_4spp_s": round(input_s, 3), "stochastic_input_16spp_s": round(input16_s, 3),
+                     "shadow_maps": hair_raster.SHADOW_MAPS, "stochastic_input_4spp_one_shadow_map_s": round(input_one_map_s, 3),
                      "fragments": render.fragment_count})
     return rows
 
@@ -159,7 +164,8 @@ def bench_hair(out_root: Path, data: Path | None, quick: bool = False) -> dict:
     for row in result["inference"]:
         print(f"hair inference {row['model']:<24} {row['size']}: onnxruntime CPU {row['onnxruntime_cpu_s']:.3f} s; "
               f"our stochastic input 4 spp {row['stochastic_input_4spp_s']:.2f} s, 16 spp "
-              f"{row['stochastic_input_16spp_s']:.2f} s ({row['fragments']} fragments)")
+              f"{row['stochastic_input_16spp_s']:.2f} s ({row['fragments']} fragments); {row['shadow_maps']} shadow maps "
+              f"cost {row['stochastic_input_4spp_s'] / row['stochastic_input_4spp_one_shadow_map_s']:.2f}x one")
     if data is not None and (data / "train").is_dir():
         result["quality"] = bench_quality(data, models, out_root, max_pairs=8 if quick else 40)
         for split, table in result["quality"].items():

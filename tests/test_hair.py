@@ -97,6 +97,26 @@ def test_stochastic_shadow_map_lets_through_one_minus_alpha():
     assert shadow.lit(samples * [1, 0, 1] - [0, 0.01, 0], bias=0.004).all()  # in front of everything: lit
 
 
+def test_several_shadow_maps_average_independent_realisations():
+    """M maps from one rasterisation are the M single maps of consecutive seeds averaged; their lit fraction
+    approaches the transmittance as 1/sqrt(M) (here against 64 maps), where one map gives only 0 or 1."""
+    shading = hr.HairShading(opacity=0.6)
+    front = [((-0.05, 0.0, 0.0013 * k), (0.05, 0.0, 0.0013 * k)) for k in range(40)]
+    back = [((-0.05, 0.02, 0.0013 * k), (0.05, 0.02, 0.0013 * k)) for k in range(40)]
+    strands = straight_strands(front + back, radius=0.0003)
+    points = np.stack([np.linspace(-0.04, 0.04, 2000), np.full(2000, 0.02), np.linspace(0.002, 0.048, 2000)],
+                      axis=1)
+    lit = {m: hr.stochastic_shadow_map(strands, (0, -1, 0), shading, size=256, maps=m).lit(points, bias=0.004)
+           for m in (1, 4, 16, 64)}
+    singles = [hr.stochastic_shadow_map(strands, (0, -1, 0), shading, size=256, seed=1_000_003 + m).lit(
+        points, bias=0.004) for m in range(4)]
+    np.testing.assert_array_equal(lit[4], np.mean(singles, axis=0))
+    assert set(np.unique(lit[1])) <= {0.0, 1.0}
+    assert 0.2 < lit[64].mean() < 0.9  # partly shadowed: the front strands let some light through
+    spread = {m: np.sqrt(((lit[m] - lit[64]) ** 2).mean()) for m in (1, 4, 16)}
+    assert spread[4] < 0.65 * spread[1] and spread[16] < 0.65 * spread[4], spread
+
+
 def test_lobes_follow_the_shading_model():
     """F_d = sin(T, L); R and TRT peak where angle(T, H) + shift = 90 degrees (H = L = V here)."""
     shading = hr.HairShading()
