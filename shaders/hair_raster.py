@@ -299,14 +299,19 @@ class ShadowMap:
         v = np.floor((coords[:, 1] - self.origin[1]) / self.texel).astype(np.int64)
         inside = (u >= 0) & (u < self.size) & (v >= 0) & (v < self.size)
         distance = -coords[:, 2]
-        nearest = np.atleast_2d(self.nearest)
-        blocker = np.full((len(nearest), len(world)), np.inf)
-        blocker[:, inside] = nearest[:, v[inside] * self.size + u[inside]]
-        return (distance <= blocker + bias).mean(axis=0)
+        texel = v[inside] * self.size + u[inside]
+        lit = np.zeros(len(world))
+        for nearest in np.atleast_2d(self.nearest):  # one map at a time: memory stays O(points)
+            blocker = np.full(len(world), np.inf)
+            blocker[inside] = nearest[texel]
+            lit += distance <= blocker + bias
+        return lit / len(np.atleast_2d(self.nearest))
 
 
 def stochastic_shadow_map(strands: Strands, to_light, shading: HairShading, size: int = 1024,
                           seed: int = 1_000_003, maps: int = 1) -> ShadowMap:
+    if maps < 1:
+        raise ValueError(f"a shadow estimate needs at least one map, got {maps}")
     to_light = np.asarray(to_light, np.float64) / np.linalg.norm(to_light)
     helper = (0.0, 0.0, 1.0) if abs(to_light[2]) < 0.9 else (1.0, 0.0, 0.0)
     u_axis = np.cross(helper, to_light)
