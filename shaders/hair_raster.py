@@ -329,11 +329,10 @@ def stochastic_shadow_map(strands: Strands, to_light, shading: HairShading, size
     alpha = fragments.coverage(shading.opacity, texel)
     order = np.lexsort((distance, fragments.pixel))  # per texel, nearest first
     pixel, distance, alpha = fragments.pixel[order], distance[order], alpha[order]
-    footprint = np.full(len(alpha), texel)
+    curve, model, footprint = fragments.curve[order], fragments.model[order], np.full(len(alpha), texel)
     nearest = np.full((maps, size * size), np.inf)
     for m in range(maps):
-        survivors = np.flatnonzero(hashed_alpha_random(fragments.curve[order], fragments.model[order], footprint,
-                                                       seed + m) < alpha)
+        survivors = np.flatnonzero(hashed_alpha_random(curve, model, footprint, seed + m) < alpha)
         first = np.ones(len(survivors), bool)
         first[1:] = pixel[survivors[1:]] != pixel[survivors[:-1]]
         nearest[m, pixel[survivors[first]]] = distance[survivors[first]]
