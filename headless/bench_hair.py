@@ -28,9 +28,7 @@ from shaders.hair_filter import load_filter  # noqa: E402
 from shaders.image_metrics import flip, psnr, tonemap  # noqa: E402
 
 MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
-HAIR_COLOR = np.array([0.32, 0.17, 0.08])
-LIGHT = 3.0
-BACKGROUND = 0.18
+HAIR_COLOR, LIGHT, BACKGROUND = np.array(hair_raster.EVALUATION_LOOK[0]), *hair_raster.EVALUATION_LOOK[1:]
 
 
 def _composite(outputs):

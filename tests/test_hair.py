@@ -131,6 +131,22 @@ def test_lobes_follow_the_shading_model():
     assert highlight[np.abs(np.degrees(theta) - 97) > 15].max() < 0.01  # exponent 250: a narrow lobe
 
 
+def test_the_networks_unfiltered_estimate_is_the_renderers():
+    """The blend configurations compute plain stochastic transparency inside the network (torch, exported to
+    ONNX); it must be what the renderer's numpy `unfiltered` gives."""
+    import torch
+
+    from training.hair_unet import unfiltered_estimate
+
+    curves = [((-0.08, 0.002 * k, -0.03 + 0.01 * k), (0.08, 0.002 * k, 0.03 - 0.01 * k)) for k in range(6)]
+    render = hr.render_stochastic(straight_strands(curves, radius=0.0006), front_camera(64, 0.2), (0.3, -1, 0.4), 4)
+    for samples in (1, 2, 4):
+        expected = render.unfiltered(samples)
+        assert 0 < expected[2].max() and (expected[2] == 0).any()
+        got = unfiltered_estimate(torch.from_numpy(render.network_input(samples)))[0].double().numpy()
+        np.testing.assert_allclose(got, expected, atol=1e-6)
+
+
 def test_composite_and_colour_map():
     outputs = np.stack([np.full((2, 2), 1.5), np.full((2, 2), 0.25), np.array([[0, 1], [0.5, 1]])])
     background = np.full((2, 2, 3), 0.2)
@@ -179,17 +195,20 @@ def test_training_checkpoints_resumes_and_exports_a_filter_onnxruntime_agrees_wi
     from training.hair_unet import HairNetConfig, HairUNet
 
     _tiny_dataset(tmp_path / "data")
-    first = hair_train.train(tmp_path / "data", "small", 3.0, tmp_path / "work", batch=4)
-    checkpoint = tmp_path / "work" / "hair_small.ckpt.pt"
+    # What the shipped filters are: a "+blend" network trained with the FLIP term.
+    first = hair_train.train(tmp_path / "data", "small+blend", 3.0, tmp_path / "work", batch=4, flip_weight=0.3)
+    checkpoint = tmp_path / "work" / "hair_small+blend.ckpt.pt"
     assert checkpoint.is_file() and first["step"] > 0 and first["validation_pairs"] == 1
-    resumed = hair_train.train(tmp_path / "data", "small", 6.0, tmp_path / "work", resume=True, batch=4)
+    assert first["flip_weight"] == 0.3 and np.isfinite(first["best_validation"])
+    resumed = hair_train.train(tmp_path / "data", "small+blend", 6.0, tmp_path / "work", resume=True, batch=4,
+                               flip_weight=0.3)
     assert resumed["step"] > first["step"]
     assert [h["step"] for h in resumed["history"][:len(first["history"])]] == [h["step"] for h in first["history"]]
     from training.hair_unet import export_onnx
 
     path = export_onnx(resumed["model"], tmp_path / "small.onnx", metadata={"steps": resumed["step"]})
     hair_filter = load_filter(path)
-    assert (hair_filter.config, hair_filter.samples, hair_filter.stride) == ("small", 4, 8)
+    assert (hair_filter.config, hair_filter.samples, hair_filter.stride) == ("small+blend", 4, 8)
     x, _, _ = hair_pairs.read_pair(tmp_path / "data", 0)
     x = x[None, :, :30, :27]  # not a multiple of the stride: padded and cropped back
     got, padded = hair_filter.run(x)
@@ -215,7 +234,7 @@ def test_bad_model_files_give_one_clear_message(tmp_path):
 
 def test_the_shipped_model_is_a_base_filter_with_its_reproduction_recipe():
     hair_filter = load_filter()
-    assert (hair_filter.config, hair_filter.samples, hair_filter.stride) == ("base", 4, 8)
+    assert (hair_filter.config, hair_filter.samples, hair_filter.stride) == ("base+blend", 4, 8)
     recipe = json.loads(SHIPPED_MODEL.with_suffix(".json").read_text())
     assert recipe["train_pairs"] >= 100 and recipe["step"] > 0
     assert "command" in recipe

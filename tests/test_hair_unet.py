@@ -63,13 +63,15 @@ def test_training_lowers_the_loss_on_synthetic_strands():
     assert float(loss) < 0.3 * first
 
 
-def test_onnx_export_and_onnxruntime_match_torch(tmp_path):
-    config = HairNetConfig.named("base")
+@pytest.mark.parametrize("name", ["base", "base+blend"])
+def test_onnx_export_and_onnxruntime_match_torch(tmp_path, name):
+    config = HairNetConfig.named(name)
     torch.manual_seed(0)
     model = HairUNet(config).eval()
     path = export_onnx(model, tmp_path / "hair.onnx")
     session = onnx_session(path)
     features = torch.randn(1, config.in_channels, 48, 64)  # another size than the export's: dynamic axes
+    features[:, 2::6] = (features[:, 2::6] > 0).float()  # alphas: some samples covered, some not
     with torch.no_grad():
         expected = model(features).numpy()
     got = session.run(["outputs"], {"features": features.numpy()})[0]
@@ -88,3 +90,77 @@ def test_clamped_outputs_keep_a_small_gradient_in_training_and_exact_values():
     assert float(raw.grad[0, 2, 0, 0]) == pytest.approx(LEAK)
     with torch.no_grad():
         np.testing.assert_array_equal(output_transform(raw).numpy(), out.detach().numpy())
+
+
+def test_input_blend_mixes_the_two_composites_and_keeps_the_ranges():
+    """share 0 gives the filter's output, share 1 the unfiltered one, and any share s composites to the s-mix of
+    the two composites (what the loss and the viewer see), with colour factor 1 where nothing is left."""
+    from shaders.hair_raster import composite
+    from training.hair_unet import blend_with_input
+
+    generator = torch.Generator().manual_seed(3)
+    def outputs(empty_pixels):
+        o = torch.rand(1, 3, 8, 8, generator=generator) * torch.tensor([2.0, 0.5, 1.0]).view(1, 3, 1, 1)
+        o[:, 0] += 0.5
+        o[:, 2].view(-1)[:empty_pixels] = 0
+        o[:, 0].view(-1)[:empty_pixels] = 1
+        o[:, 1].view(-1)[:empty_pixels] = 0
+        return o
+    filtered, unfiltered = outputs(5), outputs(9)
+    share = torch.rand(1, 1, 8, 8, generator=generator)
+    hair, background = (0.4, 0.2, 0.1), np.full((8, 8, 3), 0.2)
+    def comp(o):
+        return composite(o[0].double().numpy(), hair, background, light=2.0)
+    np.testing.assert_allclose(comp(blend_with_input(filtered, unfiltered, torch.zeros_like(share))), comp(filtered),
+                               atol=1e-3)
+    np.testing.assert_allclose(comp(blend_with_input(filtered, unfiltered, torch.ones_like(share))), comp(unfiltered),
+                               atol=1e-3)
+    mixed = blend_with_input(filtered, unfiltered, share)
+    s = share[0, 0].numpy()[..., None]
+    np.testing.assert_allclose(comp(mixed), s * comp(unfiltered) + (1 - s) * comp(filtered), atol=1e-3)
+    assert float(mixed[:, 0].view(-1)[0]) == pytest.approx(1.0)  # empty in both: colour factor 1
+    assert float(mixed[:, 2].min()) >= 0 and float(mixed[:, 2].max()) <= 1
+
+
+def test_torch_flip_is_the_flip_evaluators_and_has_gradients():
+    """The LDR-FLIP loss twin against the flip-evaluator package the bench scores with, on composited hair: a
+    noisy render, a blurred one and the reference itself."""
+    from shaders import hair_raster
+    from shaders.image_metrics import flip, tonemap as tonemap_np
+    from training.flip_loss import flip_map
+    from training.hair_unet import composite, evaluation_looks, hair_loss, tonemap
+
+    rng = np.random.default_rng(0)
+    size = 48
+    ys, xs = np.mgrid[0:size, 0:size]
+    alpha = np.zeros((size, size))
+    for _ in range(14):
+        angle, offset = rng.uniform(0, np.pi), rng.uniform(-size / 2, size / 2)
+        distance = (xs - size / 2) * np.sin(angle) - (ys - size / 2) * np.cos(angle) - offset
+        alpha = 1 - (1 - alpha) * (1 - np.clip(1 - np.abs(distance), 0, 1) * 0.8)
+    reference = np.stack([1 + 0.5 * np.sin(xs / 5.0), 0.3 * np.cos(ys / 3.0) ** 2, alpha])
+    noisy = reference.copy()
+    noisy[2] = (rng.random((size, size)) < alpha).astype(float)
+    blurred = reference.copy()
+    blurred[2] = sum(np.roll(alpha, shift, axis) for shift in (-1, 1) for axis in (0, 1)) / 5 + alpha / 5
+    color, light, background = hair_raster.EVALUATION_LOOK
+
+    def ldr_np(outputs):
+        return tonemap_np(hair_raster.composite(outputs, color, np.full((size, size, 3), background), light))
+
+    def ldr_torch(outputs):
+        looks = [x.double() for x in evaluation_looks(1)]
+        return tonemap(composite(torch.from_numpy(outputs[None]).double(), *looks))
+
+    np.testing.assert_allclose(ldr_torch(noisy)[0].numpy().transpose(1, 2, 0), ldr_np(noisy), atol=1e-7)
+    for test in (noisy, blurred, reference):
+        expected_mean, expected_map = flip(ldr_np(reference), ldr_np(test))
+        got = flip_map(ldr_torch(test), ldr_torch(reference))[0, 0].numpy()
+        np.testing.assert_allclose(got, expected_map, atol=2e-5)
+        assert float(got.mean()) == pytest.approx(expected_mean, abs=1e-5)
+    assert flip(ldr_np(reference), ldr_np(noisy))[0] > 0.05  # the cases are not trivial
+
+    prediction = torch.from_numpy(blurred[None]).float().requires_grad_(True)
+    loss = hair_loss(prediction, torch.from_numpy(reference[None]).float(), flip_weight=1.0)
+    loss.backward()
+    assert torch.isfinite(prediction.grad).all() and float(prediction.grad.abs().sum()) > 0

@@ -1,11 +1,14 @@
 """Train the hair filter on pairs from headless/hair_dataset.py and export it to ONNX.
 
-    python -m training.hair_train --data hair_data --config base --budget 900 --out models/hair_base.onnx
+    python -m training.hair_train --data hair_data/train --config base+blend --flip-weight 0.3 --budget 1800 \
+        --out models/hair_base.onnx
 
 Random 64x64 crops (flipped left-right with tangent x negated), Adam (rate x0.3 after 70 % of the budget, x0.1
-after 90 %), the paper's loss; validation loss on
-the validation pairs after every epoch, the best weights kept. Checkpoints (weights_only, atomic) every
-epoch in --work; --resume continues from the last one. Progress bar with ETA on stderr.
+after 90 %). Loss: the paper's (--loss, --gradient-weight); --flip-weight adds LDR-FLIP of the composites, each
+training crop composited with a random hair colour, light and grey background, validation with
+hair_raster.EVALUATION_LOOK. Validation loss on the validation pairs after every epoch, the best weights kept.
+Checkpoints (weights_only, atomic) every epoch in --work; --resume continues from the last one. Progress bar with
+ETA on stderr.
 """
 from __future__ import annotations
 
@@ -22,7 +25,8 @@ if __package__ in (None, ""):
 
 from shaders import hair_pairs  # noqa: E402
 from shaders.atomic import atomic_output  # noqa: E402
-from training.hair_unet import CONFIGS, HairNetConfig, HairUNet, export_onnx, hair_loss  # noqa: E402
+from training.hair_unet import (CONFIGS, LOSS_NORMS, HairNetConfig, HairUNet, export_onnx, hair_loss,  # noqa: E402
+                                 random_looks)
 
 CROP = 64
 LR_STEPS = ((0.7, 0.3), (0.9, 0.1))  # (share of the budget, learning-rate factor from then on)
@@ -65,21 +69,23 @@ def random_crops(inputs, targets, batch: int, generator: torch.Generator):
     return torch.stack(x_batch), torch.stack(y_batch)
 
 
-def validation_loss(model, inputs, targets, gradient_weight: float = 1.0) -> float:
+def validation_loss(model, inputs, targets, gradient_weight: float = 1.0, norm: str = "l2",
+                    flip_weight: float = 0.0) -> float:
     if inputs is None:
         return float("nan")
     model.eval()
     total = 0.0
     with torch.no_grad():
         for i in range(len(inputs)):
-            total += float(hair_loss(model(inputs[i:i + 1].float()), targets[i:i + 1].float(), gradient_weight))
+            total += float(hair_loss(model(inputs[i:i + 1].float()), targets[i:i + 1].float(), gradient_weight, norm,
+                                         flip_weight))
     model.train()
     return total / len(inputs)
 
 
 def train(data: Path, config_name: str, budget_s: float, work: Path, resume: bool = False, batch: int = 8,
-          lr: float = 1e-3, seed: int = 0, gradient_weight: float = 1.0,
-          progress=lambda fraction, message: None) -> dict:
+          lr: float = 1e-3, seed: int = 0, gradient_weight: float = 1.0, norm: str = "l2",
+          flip_weight: float = 0.0, progress=lambda fraction, message: None) -> dict:
     config = HairNetConfig.named(config_name)
     torch.manual_seed(seed)
     train_x, train_y, val_x, val_y = load_pairs(data, config.samples)
@@ -96,9 +102,10 @@ def train(data: Path, config_name: str, budget_s: float, work: Path, resume: boo
         best_weights = saved["best"]
         state = json.loads(saved["state_json"])
         generator.manual_seed(seed + state["step"])
-        if state.get("gradient_weight", 1.0) != gradient_weight:  # another loss: old validation values don't compare
-            state["best_validation"] = float("inf")
-    state["gradient_weight"] = gradient_weight
+        loss_was = (state.get("gradient_weight", 1.0), state.get("loss_norm", "l2"), state.get("flip_weight", 0.0))
+        if loss_was != (gradient_weight, norm, flip_weight):
+            state["best_validation"] = float("inf")  # another loss: old validation values don't compare
+    state["gradient_weight"], state["loss_norm"], state["flip_weight"] = gradient_weight, norm, flip_weight
     crops_per_image = max(1, train_x.shape[-1] // CROP) * max(1, train_x.shape[-2] // CROP)
     steps_per_epoch = max(1, len(train_x) * crops_per_image // batch)
     start = time.monotonic() - state["elapsed_s"]
@@ -110,7 +117,8 @@ def train(data: Path, config_name: str, budget_s: float, work: Path, resume: boo
             for group in optimizer.param_groups:
                 group["lr"] = lr * min([1.0] + [factor for at, factor in LR_STEPS if share >= at])
             optimizer.zero_grad()
-            loss = hair_loss(model(x), y, gradient_weight)
+            looks = random_looks(batch, generator) if flip_weight else None
+            loss = hair_loss(model(x), y, gradient_weight, norm, flip_weight, looks)
             loss.backward()
             optimizer.step()
             running += loss.item()
@@ -119,7 +127,7 @@ def train(data: Path, config_name: str, budget_s: float, work: Path, resume: boo
             progress(min(elapsed / budget_s, 1.0), f"step {state['step']} loss {loss.item():.5f}")
             if elapsed >= budget_s:
                 break
-        val = validation_loss(model, val_x, val_y, gradient_weight)
+        val = validation_loss(model, val_x, val_y, gradient_weight, norm, flip_weight)
         state["elapsed_s"] = time.monotonic() - start
         state["history"].append({"step": state["step"], "seconds": round(state["elapsed_s"], 1),
                                  "train_loss": running / steps_per_epoch, "validation_loss": val})
@@ -147,13 +155,18 @@ def main(argv=None) -> int:
     p.add_argument("--resume", action="store_true")
     p.add_argument("--threads", type=int, default=0)
     p.add_argument("--lr", type=float, default=1e-3)
-    p.add_argument("--gradient-weight", type=float, default=1.0, help="weight of the image-gradient MSE term")
+    p.add_argument("--gradient-weight", type=float, default=1.0, help="weight of the image-gradient term")
+    p.add_argument("--loss", choices=sorted(LOSS_NORMS), default="l2",
+                   help="l2: the paper's squared errors; l1: absolute errors")
+    p.add_argument("--flip-weight", type=float, default=0.0,
+                   help="weight of an LDR-FLIP term on the composited, tone-mapped images (0: the paper's loss)")
     ns = p.parse_args(argv)
     if ns.threads:
         torch.set_num_threads(ns.threads)
     reporter = Reporter(as_json=False)
     try:
         result = train(ns.data, ns.config, ns.budget, ns.work, ns.resume, lr=ns.lr, gradient_weight=ns.gradient_weight,
+                       norm=ns.loss, flip_weight=ns.flip_weight,
                        progress=lambda f, m: reporter.progress("train", f, m))
     except (FileNotFoundError, ValueError) as error:
         reporter.end_bar()
