@@ -111,8 +111,8 @@ def bench_quality(data: Path, models: dict, out_root: Path, max_pairs: int = 40,
                                           ("held-out style", data / "held_out", None)):
         indices = [i for i in hair_pairs.complete_indices(directory)
                    if wanted is None or hair_pairs.split_of(i) == wanted][:max_pairs]
-        scores = {}
-        for n, index in enumerate(indices):
+        scores, without_hair = {}, 0
+        for index in indices:
             _, _, meta = hair_pairs.read_pair(directory, index)
             camera = hair_raster.PinholeCamera(np.array(meta["world_to_camera"]), meta["focal_px"],
                                                meta["size"], meta["size"])
@@ -122,6 +122,9 @@ def bench_quality(data: Path, models: dict, out_root: Path, max_pairs: int = 40,
             light = np.array(meta["light"])
             render = hair_raster.render_stochastic(strands, camera, light, 16)
             target = render_reference(objects, camera, light, samples=meta["reference_samples"], seed=index)
+            if float(target[2].max()) < 1e-3:  # no hair in view: every method shows the bare background (PSNR inf)
+                without_hair += 1
+                continue
             reference = tonemap(_composite(target))
             candidates = {"stochastic 4 spp": _composite(render.unfiltered(4)),
                           "stochastic 16 spp": _composite(render.unfiltered(16))}
@@ -136,13 +139,14 @@ def bench_quality(data: Path, models: dict, out_root: Path, max_pairs: int = 40,
                 scores.setdefault(name, {"psnr": [], "flip": []})
                 scores[name]["psnr"].append(psnr(ldr, reference))
                 scores[name]["flip"].append(flip(reference, ldr)[0])
-            if n < pictures and "ours 4 spp" in candidates:
+            if len(scores["stochastic 4 spp"]["psnr"]) <= pictures and "ours 4 spp" in candidates:
                 row = [tonemap(candidates["stochastic 4 spp"]), tonemap(candidates["ours 4 spp"])]
                 row.append(tonemap(candidates["OIDN on 4 spp"]) if "OIDN on 4 spp" in candidates
                            else np.zeros_like(reference))
                 rows_img.append(np.concatenate(row + [reference], axis=1))
         tables[split_name] = {name: {"psnr_db": round(float(np.mean(v["psnr"])), 2),
-                                     "flip": round(float(np.mean(v["flip"])), 4), "pairs": len(v["psnr"])}
+                                     "flip": round(float(np.mean(v["flip"])), 4), "pairs": len(v["psnr"]),
+                                     "skipped_without_hair": without_hair}
                               for name, v in scores.items()}
     if rows_img:
         from shaders.bake_report import save_png
@@ -169,7 +173,9 @@ def bench_hair(out_root: Path, data: Path | None, quick: bool = False) -> dict:
         for split, table in result["quality"].items():
             print(f"\nhair quality, {split} (PSNR dB / FLIP, mean over pairs):")
             for name, row in table.items():
-                print(f"  {name:<20} {row['psnr_db']:6.2f}  {row['flip']:.4f}  ({row['pairs']} pairs)")
+                skipped = f", {row['skipped_without_hair']} without hair in view skipped" \
+                    if row.get("skipped_without_hair") else ""
+                print(f"  {name:<20} {row['psnr_db']:6.2f}  {row['flip']:.4f}  ({row['pairs']} pairs{skipped})")
     else:
         print("hair quality: no dataset (make one with headless/hair_dataset.py, pass --hair-data)")
     return result
