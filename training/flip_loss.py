@@ -9,6 +9,7 @@ adjustment; HyAB distance, raised to qc and mapped to [0, 1]. Edges and points o
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -68,6 +69,7 @@ def hyab(first, second):
                                                                          .clamp(min=EPS))
 
 
+@functools.lru_cache(maxsize=8)  # built once per viewing condition, not per training step
 def csf_kernels(pixels_per_degree: float, dtype=torch.float64):
     """The opponent channels' spatial filters, separably: (gaussians (2, 3, K) 1-D, weights (2, 3)); channel c is
     filtered by sum_t weights[t, c] * g[t, c](x) g[t, c](y), which sums to 1 over the common radius."""
@@ -82,6 +84,7 @@ def csf_kernels(pixels_per_degree: float, dtype=torch.float64):
     return gaussians.to(dtype), weights.to(dtype)
 
 
+@functools.lru_cache(maxsize=8)
 def feature_kernels(pixels_per_degree: float, dtype=torch.float64):
     """1-D (gaussian, first derivative, second derivative) of the edge and point detectors: the 2-D edge kernel
     along x is derivative(x) gaussian(y), with positive weights summing to 1 and negative ones to -1."""
@@ -104,6 +107,14 @@ def _separable(image, along_x, along_y):
     return F.conv2d(rows, along_y.view(channels, 1, size, 1).to(image), groups=channels)
 
 
+@functools.lru_cache(maxsize=1)
+def _largest_colour_distance() -> float:
+    """HyAB ** qc between Hunt-adjusted green and blue: FLIP's cmax."""
+    green = linear_to_hunt_lab(torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64).view(1, 3, 1, 1))
+    blue = linear_to_hunt_lab(torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).view(1, 3, 1, 1))
+    return float(hyab(green, blue)) ** QC
+
+
 def flip_map(test_srgb: torch.Tensor, reference_srgb: torch.Tensor,
              pixels_per_degree: float = PIXELS_PER_DEGREE) -> torch.Tensor:
     """(B, 1, H, W) per-pixel LDR-FLIP of two (B, 3, H, W) sRGB images in [0, 1]."""
@@ -116,9 +127,7 @@ def flip_map(test_srgb: torch.Tensor, reference_srgb: torch.Tensor,
                       for t in range(2))
         return linear_to_hunt_lab(ycxcz_to_linear(blurred).clamp(0, 1))
 
-    green = linear_to_hunt_lab(torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64).view(1, 3, 1, 1))
-    blue = linear_to_hunt_lab(torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).view(1, 3, 1, 1))
-    cmax = float(hyab(green, blue)) ** QC
+    cmax = _largest_colour_distance()
     distance = hyab(perceived(reference), perceived(test)) ** QC
     colour = torch.where(distance < PC * cmax, PT / (PC * cmax) * distance,
                          PT + (distance - PC * cmax) / (cmax - PC * cmax) * (1 - PT))
