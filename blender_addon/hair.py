@@ -360,7 +360,8 @@ def render_background(scene, camera_obj, width: int, height: int, samples: int, 
 
 
 def filter_hair(scene, out_dir, model_path=None, width: int | None = None, height: int | None = None,
-                background_samples: int = 16, progress=lambda fraction, message: None) -> HairFilterResult:
+                background_samples: int = 16, passes: int = 4,
+                progress=lambda fraction, message: None) -> HairFilterResult:
     """Render the cheap stochastic input for the scene's camera, filter it with the ONNX model through
     onnxruntime, composite colour factor x hair colour + highlight over a Cycles render of the rest of the
     scene, and write filtered.exr / filtered.png / unfiltered.png / hair_filter.json into out_dir."""
@@ -407,9 +408,9 @@ def filter_hair(scene, out_dir, model_path=None, width: int | None = None, heigh
         stochastic = render_stochastic(strands, camera, to_light, hair_filter.samples,
                                        opaque_depth_at=lambda pixels: opaque_depth(scene, depsgraph, camera, pixels))
         seconds["stochastic_input"] = time.perf_counter() - start
-        progress(0.35, "filtering (onnxruntime)")
+        progress(0.35, f"filtering (onnxruntime, {passes} pass{'es' if passes > 1 else ''})")
         start = time.perf_counter()
-        outputs, padded = hair_filter.filter(stochastic)
+        outputs, padded = hair_filter.filter(stochastic, passes)
         seconds["filter"] = time.perf_counter() - start
         if padded:
             warnings.append(f"{camera.width}x{camera.height} is not a multiple of the network's stride "
@@ -428,6 +429,7 @@ def filter_hair(scene, out_dir, model_path=None, width: int | None = None, heigh
     save_png(paths["filtered_png"], tonemap(image), min_width=1)
     save_png(paths["unfiltered_png"], tonemap(unfiltered), min_width=1)
     summary = {"model": str(hair_filter.path), "config": hair_filter.config, "samples": hair_filter.samples,
+               "filter_passes": passes,
                "size": [camera.width, camera.height], "key_light": light_name,
                "hair_objects": [obj.name for obj in objects], "warnings": warnings,
                "seconds": {k: round(v, 3) for k, v in seconds.items()}}

@@ -260,7 +260,8 @@ class SGLF_OT_filter_hair(bpy.types.Operator):
             out_dir = settings_path(panel.hair_output_dir, "hair output directory")
             model = settings_path(panel.hair_model, "hair filter model") if panel.hair_model.strip() else None
             result = hair.filter_hair(context.scene, out_dir, model_path=model,
-                                      background_samples=panel.hair_background_samples, progress=progress)
+                                      background_samples=panel.hair_background_samples,
+                                      passes=int(panel.hair_filter_passes), progress=progress)
         except (BakeInputError, HairFilterError, OSError) as exc:
             self.report({"ERROR"}, f"Filter Hair: {exc}")
             return {"CANCELLED"}

@@ -52,6 +52,12 @@ class SGLightfieldSettings(bpy.types.PropertyGroup):
                                     description="Where Filter Hair writes filtered.exr, the PNGs and a summary")
     hair_background_samples: IntProperty(name="Background Samples", default=16, min=1, max=4096,
                                           description="Cycles samples for the scene behind the hair")
+    hair_filter_passes: EnumProperty(name="Filter Passes", default="4",
+                                     items=[("1", "1", "The image only (fastest)"),
+                                            ("2", "2", "The image and its left-right mirror image, averaged"),
+                                            ("4", "4", "The image and its three mirror images, averaged "
+                                             "(least error; 4x the network time)")],
+                                     description="Network passes over mirror images of the input, averaged")
     # Progress shown by the panel while a bake runs (written by the operator, read by the UI).
     is_baking: BoolProperty(default=False, options={"SKIP_SAVE"})
     progress: FloatProperty(default=0.0, min=0.0, max=1.0, subtype="FACTOR", options={"SKIP_SAVE"})

@@ -42,6 +42,7 @@ def draw_sg_lightfield(layout, context):
         box.prop(settings, "hair_model")
         box.prop(settings, "hair_output_dir")
         box.prop(settings, "hair_background_samples")
+        box.prop(settings, "hair_filter_passes")
         box.operator("sg_lightfield.filter_hair", icon="RENDER_STILL")
 
 

@@ -1,11 +1,12 @@
 """Hair filter benchmark: `python -m headless.bench --sections hair` (or `python -m headless.bench_hair`).
 
-  inference   onnxruntime (CPU provider) time of each model at 1024x1024, and our renderer's time for the
+  inference   onnxruntime (CPU provider) time of each model at 1024x1024 (one pass, and the product's default
+              of 4 mirror passes), and our renderer's time for the
               4-spp input of the `hair` demo at 1024x1024 (what the filter costs on top of the input) and
               for 16 spp (unfiltered stochastic transparency's cost); its shadow maps' cost against one map
   quality     PSNR and FLIP against the Cycles reference, composited (hair colour x colour factor +
               highlight over grey) and tone-mapped alike, for: stochastic transparency at 4 and 16 spp
-              unfiltered, our filter at 1, 2 and 4 spp, and Intel Open Image Denoise (pyoidn) on the
+              unfiltered, our filter at 1, 2 and 4 spp (4 mirror passes; at 4 spp also 1 and 2), and Intel Open Image Denoise (pyoidn) on the
               4-spp input; on the validation pairs of the trained styles and on the held-out style apart.
               Targets: filtered 4 spp beats unfiltered 16 spp on both metrics, and beats OIDN on 4 spp.
   picture     bench_out/hair_rows.png: input 4 spp | ours | OIDN | reference, a few pairs of each split.
@@ -75,8 +76,12 @@ def bench_inference(models: dict, size: int = 1024, repeats: int = 3) -> list[di
             start = time.perf_counter()
             hair_filter.run(features)
             times.append(time.perf_counter() - start)
+        start = time.perf_counter()
+        hair_filter.filter(render, passes=4)
+        four_passes_s = time.perf_counter() - start
         rows.append({"model": path.name, "spp": spp, "size": f"{size}x{size}",
                      "onnxruntime_cpu_s": round(float(np.median(times)), 3),
+                     "filter_4_passes_s": round(four_passes_s, 3),
                      "stochastic_input_4spp_s": round(input_s, 3), "stochastic_input_16spp_s": round(input16_s, 3),
                      "shadow_maps": hair_raster.SHADOW_MAPS, "stochastic_input_4spp_one_shadow_map_s": round(input_one_map_s, 3),
                      "fragments": render.fragment_count})
@@ -129,7 +134,11 @@ def bench_quality(data: Path, models: dict, out_root: Path, max_pairs: int = 40,
             candidates = {"stochastic 4 spp": _composite(render.unfiltered(4)),
                           "stochastic 16 spp": _composite(render.unfiltered(16))}
             for spp, hair_filter in sorted(filters.items()):
-                candidates[f"ours {spp} spp"] = _composite(hair_filter.filter(render)[0])
+                candidates[f"ours {spp} spp"] = _composite(hair_filter.filter(render, passes=4)[0])
+                if spp == 4:  # what the mirror passes add
+                    for passes in (1, 2):
+                        candidates[f"ours 4 spp, {passes} pass{'es' if passes > 1 else ''}"] = \
+                            _composite(hair_filter.filter(render, passes=passes)[0])
             try:
                 candidates["OIDN on 4 spp"] = _oidn(candidates["stochastic 4 spp"])
             except ImportError:
@@ -146,13 +155,36 @@ def bench_quality(data: Path, models: dict, out_root: Path, max_pairs: int = 40,
                 rows_img.append(np.concatenate(row + [reference], axis=1))
         tables[split_name] = {name: {"psnr_db": round(float(np.mean(v["psnr"])), 2),
                                      "flip": round(float(np.mean(v["flip"])), 4), "pairs": len(v["psnr"]),
-                                     "skipped_without_hair": without_hair}
+                                     "skipped_without_hair": without_hair,
+                                     "flip_per_pair": [round(float(x), 5) for x in v["flip"]],
+                                     "psnr_db_per_pair": [round(float(x), 3) for x in v["psnr"]]}
                               for name, v in scores.items()}
+        tables[split_name]["paired"] = paired_differences(scores, "ours 4 spp",
+                                                          ("stochastic 16 spp", "OIDN on 4 spp"))
     if rows_img:
         from shaders.bake_report import save_png
 
         save_png(out_root / "hair_rows.png", np.concatenate(rows_img, axis=0), min_width=1)
     return tables
+
+
+def paired_differences(scores: dict, ours: str, others) -> dict:
+    """Per-pair differences of `ours` against each other method on the same views (FLIP: other - ours, PSNR:
+    ours - other; positive means ours is better): mean, its standard error, and the pairs ours wins. Views
+    differ far more than methods do, so this says whether a small difference of means is more than noise."""
+    paired = {}
+    for other in others:
+        if ours not in scores or other not in scores:
+            continue
+        row = {}
+        for metric, sign in (("flip", -1.0), ("psnr", 1.0)):
+            gain = sign * (np.asarray(scores[ours][metric]) - np.asarray(scores[other][metric]))
+            row[metric] = {"mean_gain": round(float(gain.mean()), 5),
+                           "standard_error": round(float(gain.std(ddof=1) / np.sqrt(len(gain))), 5)
+                           if len(gain) > 1 else None,
+                           "wins": int((gain > 0).sum()), "pairs": len(gain)}
+        paired[f"{ours} vs {other}"] = row
+    return paired
 
 
 def shipped_models() -> dict:
@@ -164,7 +196,8 @@ def bench_hair(out_root: Path, data: Path | None, quick: bool = False) -> dict:
     models = shipped_models()
     result = {"inference": bench_inference(models, size=256 if quick else 1024)}
     for row in result["inference"]:
-        print(f"hair inference {row['model']:<24} {row['size']}: onnxruntime CPU {row['onnxruntime_cpu_s']:.3f} s; "
+        print(f"hair inference {row['model']:<24} {row['size']}: onnxruntime CPU {row['onnxruntime_cpu_s']:.3f} s "
+              f"(4 mirror passes {row['filter_4_passes_s']:.3f} s); "
               f"our stochastic input 4 spp {row['stochastic_input_4spp_s']:.2f} s, 16 spp "
               f"{row['stochastic_input_16spp_s']:.2f} s ({row['fragments']} fragments); {row['shadow_maps']} shadow maps "
               f"cost {row['stochastic_input_4spp_s'] / row['stochastic_input_4spp_one_shadow_map_s']:.2f}x one")
@@ -173,9 +206,17 @@ def bench_hair(out_root: Path, data: Path | None, quick: bool = False) -> dict:
         for split, table in result["quality"].items():
             print(f"\nhair quality, {split} (PSNR dB / FLIP, mean over pairs):")
             for name, row in table.items():
+                if name == "paired":
+                    continue
                 skipped = f", {row['skipped_without_hair']} without hair in view skipped" \
                     if row.get("skipped_without_hair") else ""
                 print(f"  {name:<20} {row['psnr_db']:6.2f}  {row['flip']:.4f}  ({row['pairs']} pairs{skipped})")
+            for comparison, row in table.get("paired", {}).items():
+                flip_row, psnr_row = row["flip"], row["psnr"]
+                print(f"  {comparison}, per pair (positive: ours better): FLIP {flip_row['mean_gain']:+.4f} "
+                      f"+- {flip_row['standard_error'] or 0:.4f} (wins {flip_row['wins']}/{flip_row['pairs']}), "
+                      f"PSNR {psnr_row['mean_gain']:+.2f} +- {psnr_row['standard_error'] or 0:.2f} dB "
+                      f"(wins {psnr_row['wins']}/{psnr_row['pairs']})")
     else:
         print("hair quality: no dataset (make one with headless/hair_dataset.py, pass --hair-data)")
     return result

@@ -32,6 +32,8 @@ def parse_args(args):
     p.add_argument("--width", type=int)
     p.add_argument("--height", type=int)
     p.add_argument("--background-samples", type=int, default=16)
+    p.add_argument("--passes", type=int, choices=(1, 2, 4), default=4,
+                   help="network passes over mirror images of the input, averaged (4: least error, 4x the time)")
     ns = p.parse_args(args)
     for name in ("width", "height", "background_samples"):
         value = getattr(ns, name)
@@ -53,7 +55,7 @@ def main(argv=None) -> int:
     try:
         scene = load_scene(ns)
         result = hair.filter_hair(scene, ns.out, model_path=ns.model, width=ns.width, height=ns.height,
-                                  background_samples=ns.background_samples,
+                                  background_samples=ns.background_samples, passes=ns.passes,
                                   progress=lambda f, m: reporter.progress("hair", f, m))
     except (BakeInputError, HairFilterError, OSError) as error:
         reporter.end_bar()

@@ -55,17 +55,15 @@ def make_pairs(ns, progress) -> dict:
                 grooms[style] = (objects, hair.strands_from_objects(objects, depsgraph))
         objects, strands = grooms[style]
         rng = np.random.default_rng([ns.seed, index, 0 if directory.name == "train" else 1])
-        camera = hair_raster.random_camera(rng, *strands.bounds(), ns.size)
-        light = hair_raster.random_light(rng)
         t0 = time.perf_counter()
-        stochastic = hair_raster.render_stochastic(strands, camera, light, hair_pairs.PAIR_SAMPLES)
+        camera, light, stochastic, draws = hair_raster.random_view(rng, strands, ns.size, hair_pairs.PAIR_SAMPLES)
         t1 = time.perf_counter()
         target = hair.render_reference(objects, camera, light, samples=ns.reference_samples,
                                        seed=index)
         t2 = time.perf_counter()
         hair_pairs.write_pair(directory, index, stochastic.features, target, {
             "style": style, "size": ns.size, "density": ns.density, "light": light.tolist(),
-            "focal_px": camera.focal_px,
+            "focal_px": camera.focal_px, "view_draws": draws,
             "world_to_camera": np.asarray(camera.world_to_camera).tolist(),
             "reference_samples": ns.reference_samples, "stochastic_s": round(t1 - t0, 3),
             "reference_s": round(t2 - t1, 3), "mean_alpha": round(float(target[2].mean()), 4)})

@@ -3,6 +3,10 @@
 The ONNX file carries its configuration in its metadata (written by training.hair_unet.export_onnx):
 samples per pixel and stride. Images whose sides are not multiples of the stride are padded with empty
 pixels (no hair) and cropped back, so any resolution works; the result says when that happened.
+
+`filter` runs the network on the image and on its mirror images (left-right, up-down, both) and averages the
+results as composites do (alpha-weighted): the network's errors differ between mirror images, so the mean has
+less of them (docs/design-additions.md §11 measures what 1, 2 and 4 passes give and cost).
 """
 from __future__ import annotations
 
@@ -17,6 +21,48 @@ except ImportError:
     from shaders.hair_raster import FEATURE_NAMES, StochasticRender
 
 SHIPPED_MODEL = Path(__file__).resolve().parent.parent / "models" / "hair_base.onnx"
+MIRRORS = {1: ((False, False),), 2: ((False, False), (True, False)),
+           4: ((False, False), (True, False), (False, True), (True, True))}  # passes -> (left-right, up-down)
+DEFAULT_PASSES = 4
+_TANGENT_X, _TANGENT_Y = FEATURE_NAMES.index("tangent_x"), FEATURE_NAMES.index("tangent_y")
+
+
+def mirror_features(features: np.ndarray, left_right: bool, up_down: bool) -> np.ndarray:
+    """(..., 6*S, H, W) network input of the mirror image: pixels flipped, view-space tangents with them."""
+    if not (left_right or up_down):
+        return features
+    out = np.ascontiguousarray(features[..., ::-1 if up_down else 1, ::-1 if left_right else 1])
+    if left_right:
+        out[..., _TANGENT_X::len(FEATURE_NAMES), :, :] *= -1
+    if up_down:
+        out[..., _TANGENT_Y::len(FEATURE_NAMES), :, :] *= -1
+    return out
+
+
+def unmirror(outputs: np.ndarray, left_right: bool, up_down: bool) -> np.ndarray:
+    """(..., H, W) outputs of a mirrored input, back in the image's own orientation."""
+    if up_down:
+        outputs = np.flip(outputs, -2)
+    if left_right:
+        outputs = np.flip(outputs, -1)
+    return outputs
+
+
+def mean_as_composited(outputs) -> np.ndarray:
+    """Mean of several (3, H, W) colour factor, highlight, alpha results whose composite over any background
+    is the mean of their composites: alpha averaged (clipped to [0, 1] as composite clips it), colour factor and
+    highlight weighted by alpha (a plain mean where every alpha is 0)."""
+    alphas = [np.clip(o[2], 0.0, 1.0) for o in outputs]
+    weight_sum = np.sum(alphas, axis=0)
+    covered = weight_sum > 0
+    safe = np.where(covered, weight_sum, 1.0)
+    mean = np.empty_like(outputs[0])
+    for channel in (0, 1):
+        weighted = np.sum([o[channel] * a for o, a in zip(outputs, alphas)], axis=0)
+        plain = np.sum([o[channel] for o in outputs], axis=0) / len(outputs)
+        mean[channel] = np.where(covered, weighted / safe, plain)
+    mean[2] = weight_sum / len(outputs)
+    return mean
 
 
 class HairFilterError(RuntimeError):
@@ -43,12 +89,19 @@ class HairFilter:
         outputs = self.session.run(["outputs"], {"features": np.ascontiguousarray(padded, np.float32)})[0]
         return outputs[0, :, :height, :width], bool(pad_h or pad_w)
 
-    def filter(self, render: StochasticRender) -> tuple[np.ndarray, bool]:
-        """Filtered outputs of a stochastic render; alpha is zero beyond one pixel of any strand (the
-        network's small bias would otherwise veil the whole frame)."""
+    def filter(self, render: StochasticRender, passes: int = DEFAULT_PASSES) -> tuple[np.ndarray, bool]:
+        """Filtered outputs of a stochastic render, the mean over `passes` mirror images (1, 2 or 4); alpha is
+        zero beyond one pixel of any strand (the network's small bias would otherwise veil the whole frame)."""
+        if passes not in MIRRORS:
+            raise HairFilterError(f"filter passes must be one of {sorted(MIRRORS)}, got {passes}")
         if render.samples < self.samples:
             raise HairFilterError(f"the model needs {self.samples} samples per pixel; the render has {render.samples}")
-        outputs, padded = self.run(render.network_input(self.samples))
+        features = render.network_input(self.samples)
+        results = []
+        for left_right, up_down in MIRRORS[passes]:
+            outputs, padded = self.run(mirror_features(features, left_right, up_down))
+            results.append(unmirror(outputs, left_right, up_down))
+        outputs = results[0] if len(results) == 1 else mean_as_composited(results)
         footprint = render.extras.get("footprint")
         if footprint is not None:
             near = np.pad(footprint, 1)

@@ -143,6 +143,20 @@ def random_light(rng: np.random.Generator) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
+def random_view(rng: np.random.Generator, strands: Strands, size: int, samples: int, tries: int = 16, **render_options):
+    """random_camera and random_light, drawn again while no strand crosses a pixel (a close-up aimed between
+    strands): such a view teaches the filter nothing and has no score. The first draw is random_camera's
+    and random_light's, so views that show hair are the ones earlier datasets have.
+    Returns (camera, light, render, draws); ValueError when no draw in `tries` shows any hair."""
+    for draw in range(1, tries + 1):
+        camera = random_camera(rng, *strands.bounds(), size)
+        light = random_light(rng)
+        render = render_stochastic(strands, camera, light, samples, **render_options)
+        if render.fragment_count:
+            return camera, light, render, draw
+    raise ValueError(f"none of {tries} random views of the groom shows any hair")
+
+
 def subdivide_catmull_rom(strands: Strands, segments_per_span: int = 4) -> Strands:
     """Uniform Catmull-Rom through the control points (end points repeated), as Blender evaluates hair."""
     counts = np.diff(strands.offsets)

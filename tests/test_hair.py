@@ -11,7 +11,7 @@ import pytest
 
 from shaders import hair_pairs
 from shaders import hair_raster as hr
-from shaders.hair_filter import SHIPPED_MODEL, HairFilterError, load_filter
+from shaders.hair_filter import SHIPPED_MODEL, HairFilterError, load_filter, mean_as_composited, mirror_features, unmirror
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -240,6 +240,60 @@ def test_the_shipped_model_is_a_base_filter_with_its_reproduction_recipe():
     assert "command" in recipe
 
 
+def test_mirrored_input_keeps_tangents_along_the_strands_in_the_image():
+    """A diagonal strand: in the render and in each of its mirror images, the view-space tangent features of
+    the covered pixels point along the line those pixels form (x right, y up)."""
+    strands = straight_strands([((-0.06, 0.0, -0.03), (0.06, 0.0, 0.04))], radius=0.0008)
+    render = hr.render_stochastic(strands, front_camera(64, 0.2), (0, -1, 0), 2, shadow_map_size=64)
+    features = render.network_input()
+    tx, ty = hr.FEATURE_NAMES.index("tangent_x"), hr.FEATURE_NAMES.index("tangent_y")
+    for left_right in (False, True):
+        for up_down in (False, True):
+            mirrored = mirror_features(features, left_right, up_down)[0]
+            covered = mirrored[hr.FEATURE_NAMES.index("alpha")] > 0
+            rows, cols = np.nonzero(covered)
+            points = np.stack([cols, -rows], axis=1).astype(float)
+            line = np.linalg.svd(points - points.mean(0))[2][0]
+            tangents = np.stack([mirrored[tx][covered], mirrored[ty][covered]], axis=1)
+            tangents /= np.linalg.norm(tangents, axis=1, keepdims=True)
+            assert np.abs(tangents @ line).min() > 0.98, (left_right, up_down)
+            np.testing.assert_array_equal(mirror_features(mirrored, left_right, up_down), features[0])
+
+
+def test_the_mean_over_mirror_passes_composites_as_the_mean_of_composites():
+    rng = np.random.default_rng(3)
+    outputs = [np.stack([rng.uniform(0, 2, (5, 7)), rng.uniform(0, 1, (5, 7)), rng.uniform(-0.2, 1.2, (5, 7))])
+               for _ in range(4)]
+    outputs[0][2, 0, 0] = outputs[1][2, 0, 0] = outputs[2][2, 0, 0] = outputs[3][2, 0, 0] = 0.0  # no hair
+    background = rng.uniform(0, 1, (5, 7, 3))
+    look = dict(hair_color=(0.3, 0.2, 0.1), background=background, light=2.5)
+    expected = np.mean([hr.composite(o, **look) for o in outputs], axis=0)
+    np.testing.assert_allclose(hr.composite(mean_as_composited(outputs), **look), expected, rtol=1e-12, atol=1e-12)
+
+
+def test_mirror_passes_of_the_shipped_filter(tmp_path):
+    """One pass is the network's output; four passes are equivariant: filtering the mirror image gives the
+    mirror image of the filtered result. Anything but 1, 2 or 4 passes is refused with one clear message."""
+    strands = straight_strands([((-0.08, 0.0, -0.05 + 0.01 * k), (0.07, 0.01 * k, 0.06 - 0.015 * k))
+                                for k in range(6)], radius=0.0007)
+    render = hr.render_stochastic(strands, front_camera(44, 0.2), (0.3, -1, 0.5), 4, shadow_map_size=128)
+    hair_filter = load_filter()
+    one, _ = hair_filter.filter(render, passes=1)
+    network, _ = hair_filter.run(render.network_input())
+    covered = one[2] > 0
+    np.testing.assert_array_equal(one[:, covered], network[:, covered])
+    four, padded = hair_filter.filter(render, passes=4)
+    assert padded and four.shape == one.shape and np.isfinite(four).all()
+    assert np.abs(four - one).max() > 1e-3  # the passes do differ
+    mirrored_features = mirror_features(render.features, True, False)
+    mirrored = hr.StochasticRender(mirrored_features, render.fragment_count, render.depth_range,
+                                   {"footprint": render.extras["footprint"][:, ::-1]})
+    four_of_mirror, _ = hair_filter.filter(mirrored, passes=4)
+    np.testing.assert_allclose(unmirror(four_of_mirror, True, False), four, atol=2e-5)
+    with pytest.raises(HairFilterError, match="filter passes must be one of"):
+        hair_filter.filter(render, passes=3)
+
+
 # ------------------------------------------------------------------ Blender: reference, operator, CLI
 
 @pytest.mark.slow
@@ -289,6 +343,7 @@ def test_filter_hair_operator_on_the_hair_scene(tmp_path):
             scene.render.resolution_percentage = 100
             scene.sg_lightfield.hair_output_dir = str(tmp_path / "hair")
             scene.sg_lightfield.hair_background_samples = 4
+            scene.sg_lightfield.hair_filter_passes = "2"
             assert bpy.ops.sg_lightfield.filter_hair() == {"FINISHED"}
         image = bpy.data.images["Filtered Hair"]
         assert tuple(image.size) == (100, 75)
@@ -296,6 +351,7 @@ def test_filter_hair_operator_on_the_hair_scene(tmp_path):
         assert pixels.shape == (75, 100, 3) and np.isfinite(pixels).all()
         summary = json.loads((tmp_path / "hair" / "hair_filter.json").read_text())
         assert summary["key_light"].startswith("Key") and any("stride" in w for w in summary["warnings"])
+        assert summary["filter_passes"] == 2
         empty = build_demo_scene("demo:spheres")
         with active_scene(empty):
             empty.sg_lightfield.hair_output_dir = str(tmp_path / "none")
@@ -315,12 +371,37 @@ def test_filter_hair_command_line_and_its_bad_input(tmp_path):
              "--background-samples", "2")
     assert ok.returncode == 0, ok.stderr
     assert (tmp_path / "ok" / "filtered.png").is_file() and (tmp_path / "ok" / "unfiltered.png").is_file()
+    assert json.loads((tmp_path / "ok" / "hair_filter.json").read_text())["filter_passes"] == 4  # the default
     no_hair = run("--scene", "demo:spheres", "--out", str(tmp_path / "x"))
     assert no_hair.returncode == 1 and no_hair.stderr.strip().splitlines()[-1].startswith("error: ")
     (tmp_path / "bad.onnx").write_text("not a model")
     bad = run("--scene", "demo:hair", "--out", str(tmp_path / "x"), "--model", str(tmp_path / "bad.onnx"))
     assert bad.returncode == 1 and "not a readable ONNX file" in bad.stderr
     assert not (tmp_path / "x" / "filtered.exr").exists()
+
+
+def test_random_views_are_drawn_again_until_strands_are_in_view():
+    """Two short strands at opposite corners of a 1 m box: most close-ups aim between them. random_view keeps
+    drawing from the same generator until a strand crosses a pixel, and its first draw is random_camera's and
+    random_light's (so views that showed hair stay what earlier datasets hold)."""
+    strands = straight_strands([((-0.5, -0.5, -0.5), (-0.45, -0.5, -0.5)), ((0.45, 0.5, 0.5), (0.5, 0.5, 0.5))])
+    options = {"shadow_map_size": 64}
+    draws_seen = []
+    for seed in range(6):
+        camera, light, render, draws = hr.random_view(np.random.default_rng(seed), strands, 32, 2, tries=400, **options)
+        assert render.fragment_count > 0
+        replay = np.random.default_rng(seed)
+        for draw in range(draws):
+            replayed_camera = hr.random_camera(replay, *strands.bounds(), 32)
+            replayed_light = hr.random_light(replay)
+            if draw < draws - 1:
+                assert hr.render_stochastic(strands, replayed_camera, replayed_light, 2, **options).fragment_count == 0
+        np.testing.assert_array_equal(replayed_camera.world_to_camera, camera.world_to_camera)
+        np.testing.assert_array_equal(replayed_light, light)
+        draws_seen.append(draws)
+    assert max(draws_seen) > 1
+    with pytest.raises(ValueError, match="none of 1 random views"):
+        hr.random_view(np.random.default_rng(int(np.argmax(draws_seen))), strands, 32, 2, tries=1, **options)
 
 
 @pytest.mark.slow
