@@ -24,6 +24,7 @@ from mathutils import Matrix, Vector
 try:
     from ..shaders.bake_plan import BakeInputError
     from ..shaders.exr_io import read_exr
+    from ..shaders.hair_filter import DEFAULT_PASSES
     from ..shaders.hair_raster import HairShading, PinholeCamera, Strands
     from ..shaders.node_group import NodeOps
     from .render import quiet_stdout
@@ -34,6 +35,7 @@ except ImportError:
                                               uses_nodes)
     from shaders.bake_plan import BakeInputError
     from shaders.exr_io import read_exr
+    from shaders.hair_filter import DEFAULT_PASSES
     from shaders.hair_raster import HairShading, PinholeCamera, Strands
     from shaders.node_group import NodeOps
 
@@ -360,7 +362,7 @@ def render_background(scene, camera_obj, width: int, height: int, samples: int, 
 
 
 def filter_hair(scene, out_dir, model_path=None, width: int | None = None, height: int | None = None,
-                background_samples: int = 16, passes: int = 4,
+                background_samples: int = 16, passes: int = DEFAULT_PASSES,
                 progress=lambda fraction, message: None) -> HairFilterResult:
     """Render the cheap stochastic input for the scene's camera, filter it with the ONNX model through
     onnxruntime, composite colour factor x hair colour + highlight over a Cycles render of the rest of the

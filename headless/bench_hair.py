@@ -6,8 +6,8 @@
               for 16 spp (unfiltered stochastic transparency's cost); its shadow maps' cost against one map
   quality     PSNR and FLIP against the Cycles reference, composited (hair colour x colour factor +
               highlight over grey) and tone-mapped alike, for: stochastic transparency at 4 and 16 spp
-              unfiltered, our filter at 1, 2 and 4 spp (4 mirror passes; at 4 spp also 1 and 2), and Intel Open Image Denoise (pyoidn) on the
-              4-spp input; on the validation pairs of the trained styles and on the held-out style apart.
+              unfiltered, our filter at 1, 2 and 4 spp (4 mirror passes; at 4 spp also 1 and 2), and Intel
+              Open Image Denoise (pyoidn) on the 4-spp input; on the validation pairs of the trained styles and on the held-out style apart.
               Targets: filtered 4 spp beats unfiltered 16 spp on both metrics, and beats OIDN on 4 spp.
   picture     bench_out/hair_rows.png: input 4 spp | ours | OIDN | reference, a few pairs of each split.
 """

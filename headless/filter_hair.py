@@ -19,7 +19,7 @@ if __package__ in (None, ""):
 
 from headless.bake import Reporter, script_args  # noqa: E402
 from shaders.bake_plan import BakeInputError  # noqa: E402
-from shaders.hair_filter import HairFilterError  # noqa: E402
+from shaders.hair_filter import DEFAULT_PASSES, MIRRORS, HairFilterError  # noqa: E402
 
 
 def parse_args(args):
@@ -32,7 +32,7 @@ def parse_args(args):
     p.add_argument("--width", type=int)
     p.add_argument("--height", type=int)
     p.add_argument("--background-samples", type=int, default=16)
-    p.add_argument("--passes", type=int, choices=(1, 2, 4), default=4,
+    p.add_argument("--passes", type=int, choices=sorted(MIRRORS), default=DEFAULT_PASSES,
                    help="network passes over mirror images of the input, averaged (4: least error, 4x the time)")
     ns = p.parse_args(args)
     for name in ("width", "height", "background_samples"):
