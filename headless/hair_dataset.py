@@ -1,10 +1,12 @@
 """Make hair-filter training pairs: stochastic input (our renderer) and Cycles reference for random views.
 
-    python headless/hair_dataset.py --out hair_data [--pairs 400] [--held-out 40] [--size 128]
+    python headless/hair_dataset.py --out hair_data [--pairs 240] [--held-out 30] [--size 128]
 
 Styles straight, wavy and curly take turns in DIR/train (every tenth pair is validation); the clumped
-style is never trained on and goes to DIR/held_out. Resumable: pairs already complete are skipped, so an
-interrupted run continues where it stopped. Exit 0 on success, 1 with one 'error:' line otherwise.
+style is never trained on and goes to DIR/held_out. Each view is drawn from a generator seeded by
+(seed, index, split) alone, so `dataset_view` gives the bench the same views without the files. The defaults
+make the shipped models' dataset. Resumable: pairs already complete are skipped, so an interrupted run
+continues where it stopped. Exit 0 on success, 1 with one 'error:' line otherwise.
 """
 from __future__ import annotations
 
@@ -19,16 +21,37 @@ if __package__ in (None, ""):
 from headless.bake import Reporter, script_args  # noqa: E402
 from shaders.bake_plan import BakeInputError  # noqa: E402
 
+# The shipped models' dataset (`make hair-model`); the bench scores the same views.
+PAIRS, HELD_OUT, SIZE, REFERENCE_SAMPLES, DENSITY, SEED = 240, 30, 128, 192, 60000.0, 0
+
+
+def dataset_jobs(pairs: int, held_out: int) -> list[tuple[str, int, str]]:
+    """(split directory, index, style) of every pair: the training styles in turn, then the held-out style."""
+    from blender_addon import hair
+
+    return [("train", i, hair.TRAIN_STYLES[i % len(hair.TRAIN_STYLES)]) for i in range(pairs)] + \
+        [("held_out", i, hair.HELD_OUT_STYLE) for i in range(held_out)]
+
+
+def dataset_view(strands, directory_name: str, index: int, seed: int = SEED, size: int = SIZE, samples=None):
+    """The pair's view: (camera, light, stochastic render, draws), from (seed, index, split) alone."""
+    import numpy as np
+
+    from shaders import hair_pairs, hair_raster
+
+    rng = np.random.default_rng([seed, index, 0 if directory_name == "train" else 1])
+    return hair_raster.random_view(rng, strands, size, samples or hair_pairs.PAIR_SAMPLES)
+
 
 def parse_args(args):
     p = argparse.ArgumentParser(prog="headless/hair_dataset.py", description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--pairs", type=int, default=400, help="training-style pairs (10%% become validation)")
-    p.add_argument("--held-out", type=int, default=40, help="pairs of the held-out style")
-    p.add_argument("--size", type=int, default=128, help="image side in pixels")
-    p.add_argument("--reference-samples", type=int, default=256, help="Cycles samples per pixel")
-    p.add_argument("--density", type=float, default=60000.0, help="groom density (strands per m^2 of scalp)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--pairs", type=int, default=PAIRS, help="training-style pairs (10%% become validation)")
+    p.add_argument("--held-out", type=int, default=HELD_OUT, help="pairs of the held-out style")
+    p.add_argument("--size", type=int, default=SIZE, help="image side in pixels")
+    p.add_argument("--reference-samples", type=int, default=REFERENCE_SAMPLES, help="Cycles samples per pixel")
+    p.add_argument("--density", type=float, default=DENSITY, help="groom density (strands per m^2 of scalp)")
+    p.add_argument("--seed", type=int, default=SEED)
     ns = p.parse_args(args)
     if ns.size < 16 or ns.size > 4096 or ns.pairs < 0 or ns.held_out < 0 or ns.reference_samples < 1:
         p.error("--size must be 16..4096, --pairs/--held-out >= 0, --reference-samples >= 1")
@@ -40,10 +63,9 @@ def make_pairs(ns, progress) -> dict:
 
     from blender_addon import hair
     from blender_addon.scene_analysis import active_scene
-    from shaders import hair_pairs, hair_raster
+    from shaders import hair_pairs
 
-    jobs = [(ns.out / "train", i, hair.TRAIN_STYLES[i % len(hair.TRAIN_STYLES)]) for i in range(ns.pairs)]
-    jobs += [(ns.out / "held_out", i, hair.HELD_OUT_STYLE) for i in range(ns.held_out)]
+    jobs = [(ns.out / name, i, style) for name, i, style in dataset_jobs(ns.pairs, ns.held_out)]
     todo = [job for job in jobs if not hair_pairs.is_complete(job[0], job[1])]
     grooms, made, start = {}, 0, time.monotonic()
     for number, (directory, index, style) in enumerate(todo):
@@ -54,9 +76,8 @@ def make_pairs(ns, progress) -> dict:
                 depsgraph = bpy.context.evaluated_depsgraph_get()
                 grooms[style] = (objects, hair.strands_from_objects(objects, depsgraph))
         objects, strands = grooms[style]
-        rng = np.random.default_rng([ns.seed, index, 0 if directory.name == "train" else 1])
         t0 = time.perf_counter()
-        camera, light, stochastic, draws = hair_raster.random_view(rng, strands, ns.size, hair_pairs.PAIR_SAMPLES)
+        camera, light, stochastic, draws = dataset_view(strands, directory.name, index, ns.seed, ns.size)
         t1 = time.perf_counter()
         target = hair.render_reference(objects, camera, light, samples=ns.reference_samples,
                                        seed=index)

@@ -52,16 +52,18 @@ def mean_as_composited(outputs) -> np.ndarray:
     """Mean of several (3, H, W) colour factor, highlight, alpha results whose composite over any background
     is the mean of their composites: alpha averaged (clipped to [0, 1] as composite clips it), colour factor and
     highlight weighted by alpha (a plain mean where every alpha is 0)."""
-    alphas = [np.clip(o[2], 0.0, 1.0) for o in outputs]
-    weight_sum = np.sum(alphas, axis=0)
-    covered = weight_sum > 0
-    safe = np.where(covered, weight_sum, 1.0)
+    alpha_sum = np.zeros_like(outputs[0][2])
+    weighted = np.zeros_like(outputs[0][:2])
+    plain = np.zeros_like(outputs[0][:2])
+    for output in outputs:  # accumulated in place, without stacking copies of every output
+        alpha = np.clip(output[2], 0.0, 1.0)
+        alpha_sum += alpha
+        weighted += output[:2] * alpha
+        plain += output[:2]
+    covered = alpha_sum > 0
     mean = np.empty_like(outputs[0])
-    for channel in (0, 1):
-        weighted = np.sum([o[channel] * a for o, a in zip(outputs, alphas)], axis=0)
-        plain = np.sum([o[channel] for o in outputs], axis=0) / len(outputs)
-        mean[channel] = np.where(covered, weighted / safe, plain)
-    mean[2] = weight_sum / len(outputs)
+    mean[:2] = np.where(covered, weighted / np.where(covered, alpha_sum, 1.0), plain / len(outputs))
+    mean[2] = alpha_sum / len(outputs)
     return mean
 
 
