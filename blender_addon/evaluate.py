@@ -151,9 +151,22 @@ EEVEE_WORKER = Path(__file__).resolve().parent / "eevee_worker.py"
 EEVEE_SAMPLES = 16
 
 
+# Blender logs a material whose shader failed to compile (EEVEE then draws it magenta) as
+#   gpu.shader | ERROR MA<material> Linking:
+#              |       | Error: <message>
+SHADER_ERROR = re.compile(r"gpu\.shader\s*\|\s*ERROR MA(?P<material>.*?)\s+(?:Linking|Compiling)?:?\s*\n"
+                          r"(?:\s*\|)+\s*(?:Error:\s*)?(?P<message>[^\n]*)")
+
+
+def shader_errors(log: str) -> list[str]:
+    """'material: message' for each material whose EEVEE shader failed to compile, from a render's log."""
+    return list(dict.fromkeys(f"{m['material'].strip()}: {m['message'].strip()}" for m in SHADER_ERROR.finditer(log)))
+
+
 def render_eevee(scene, camera_names, work_dir: Path, samples: int = EEVEE_SAMPLES, timeout_s: float = 900.0):
     """EEVEE renders of the scene as it is now, one per camera, by a separate process working on a saved copy:
-    ([(H, W, 3) images], [seconds per render]). The first render's time includes shader compilation."""
+    ([(H, W, 3) images], [seconds per render], [materials whose shaders failed to compile, with the reason]).
+    The first render's time includes shader compilation."""
     blend = work_dir / "eevee_views.blend"
     with active_scene(scene), quiet_stdout():
         bpy.ops.wm.save_as_mainfile(filepath=str(blend), copy=True)
@@ -171,7 +184,7 @@ def render_eevee(scene, camera_names, work_dir: Path, samples: int = EEVEE_SAMPL
     seconds = [float(m.group(1)) for m in re.finditer(r"^SECONDS BLENDER_EEVEE \d+ ([0-9.]+)$", out.stdout, re.M)]
     images = [read_exr(work_dir / f"BLENDER_EEVEE_{k}.exr", channels=["R", "G", "B"])[0].astype(np.float64)
               for k in range(len(camera_names))]
-    return images, seconds
+    return images, seconds, shader_errors(out.stdout + "\n" + out.stderr)
 
 
 REFERENCE_SAMPLES_MIN = 128
@@ -262,7 +275,7 @@ def _evaluate_eevee(scene, cameras, references, cycles_tests, out_dir: Path, wor
     """EEVEE against the reference and against Cycles' evaluation of the same baked nodes; pictures per view.
     A failure to render with EEVEE (no OpenGL on the machine) is reported, not raised."""
     try:
-        images, seconds = render_eevee(scene, [camera.name for camera, _ in cameras], work_dir)
+        images, seconds, failed = render_eevee(scene, [camera.name for camera, _ in cameras], work_dir)
     except (RuntimeError, OSError, subprocess.TimeoutExpired) as exc:
         return {"error": str(exc)}
     views, flip_maps, parity_maps = [], [], []
@@ -283,6 +296,6 @@ def _evaluate_eevee(scene, cameras, references, cycles_tests, out_dir: Path, wor
     # meshes without its ray tracing: parity with Cycles' evaluation of the same nodes is per class.
     summary.update(views=views, samples=EEVEE_SAMPLES, flip_by_roughness=flip_by_roughness(flip_maps, roughness_maps),
                    flip_vs_cycles_bake_by_roughness=flip_by_roughness(parity_maps, roughness_maps),
-                   first_render_s=seconds[0] if seconds else None,
+                   shader_errors=failed, first_render_s=seconds[0] if seconds else None,
                    later_render_s=float(np.mean(seconds[1:])) if len(seconds) > 1 else None)
     return summary

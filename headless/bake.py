@@ -206,7 +206,9 @@ def stage_summary(stage: str, result, plan) -> tuple[str, list]:
                       f"{eevee['first_render_s']:.1f} s incl. shaders)" if "flip" in eevee else "")
         return (f"RMSE {result['rmse']:.4f}, PSNR {result['psnr']:.2f} dB, FLIP {result['flip']:.4f} over "
                 f"{len(result['views'])} views (reference noise RMSE {result['reference_noise_rmse']:.4f})"
-                + eevee_text), [f"EEVEE not evaluated: {eevee['error']}"] if "error" in eevee else []
+                + eevee_text), ([f"EEVEE not evaluated: {eevee['error']}"] if "error" in eevee else []) + \
+            [f"EEVEE could not compile a material's shader (it renders magenta): {error}"
+             for error in eevee.get("shader_errors", ())]
     if stage == "apply":
         groups = ", ".join(f"'{name}' {nodes} nodes" for name, nodes in result["node_groups"].items())
         return f"{len(result['materials'])} materials baked (node groups: {groups})", []

@@ -72,6 +72,7 @@ def write_report_html(out_dir) -> Path:
         rows += [("EEVEE FLIP vs reference", eevee.get("flip")), ("EEVEE PSNR", eevee.get("psnr")),
                  ("EEVEE FLIP vs Cycles bake", eevee.get("flip_vs_cycles_bake")),
                  ("EEVEE first render s (incl. shader compile)", eevee.get("first_render_s"))]
+        rows += [("EEVEE shader failed (renders magenta)", error) for error in eevee.get("shader_errors", ())]
     lightfield = report.get("train", {}).get("metrics", {}).get("lightfield", {})
     rows += [(f"light-field fit {key}", value) for key, value in lightfield.items() if not isinstance(value, dict)]
     if "midpoint" in lightfield:

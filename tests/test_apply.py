@@ -290,6 +290,7 @@ def test_eevee_renders_the_baked_spheres_in_the_evaluate_stage(tmp_path):
     eevee = json.loads((tmp_path / "report.json").read_text())["errors"]["eevee"]
     assert "error" not in eevee, eevee
     assert (tmp_path / "evaluate_view0_eevee.png").is_file() and eevee["first_render_s"] > 0
+    assert eevee["shader_errors"] == []  # every baked material compiled (a failed one renders magenta)
     parity = eevee["flip_vs_cycles_bake_by_roughness"]
     for name in ("roughness < 0.3", "0.3 <= roughness < 0.6"):
         assert parity[name]["pixels"] > 100 and parity[name]["flip"] < 0.1, parity
@@ -418,3 +419,18 @@ def test_sh_baseline_bakes_applies_and_shades_through_its_own_group(tmp_path):
     group_name = group.name
     remove_bake(scene)
     assert group_name not in bpy.data.node_groups
+
+
+
+def test_eevee_shader_failures_are_read_from_the_render_log():
+    """EEVEE draws a material whose shader fails to compile in magenta and goes on; the evaluate stage names it.
+    The log is what Blender 5.0.1 printed for the baked courtyard (docs/design-additions.md §13)."""
+    from blender_addon.evaluate import shader_errors
+
+    log = ("00:17.263  gpu.shader       | ERROR MAGlossy Ground (SG bake) Linking: \n"
+           "                            |       | Error: Uniform block node_tree too big (125168/65536)\n"
+           "                            | \n"
+           "00:26.411  render           | Saved: 'ev/BLENDER_EEVEE_0.exr'\n")
+    assert shader_errors(log) == ["Glossy Ground (SG bake): Uniform block node_tree too big (125168/65536)"]
+    assert shader_errors(log + log) == shader_errors(log)  # one line per material, whatever the view count
+    assert shader_errors("00:26.411  render           | Saved: 'ev/BLENDER_EEVEE_0.exr'\n") == []
