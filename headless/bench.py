@@ -107,19 +107,19 @@ def bench_render(out_root: Path, per_texel_subset: int = 24) -> dict:
     with tempfile.TemporaryDirectory(dir=out) as tmp, _RenderScene(scene, plan, Path(tmp), positions) as renderer:
         renderer.configure("lightfield")
         renderer.render(positions[:1], normals[:1], offsets[:1], np.ones(1), 1, 1, resolution, "warmup")
-        start = time.perf_counter()
-        for k in subset:
-            renderer.render(positions[k:k + 1], normals[k:k + 1], offsets[k:k + 1], np.ones(1), 1, 1, resolution,
-                            f"texel_{k}")
-        per_texel_s = (time.perf_counter() - start) / len(subset)
+
+        def seconds_per_call(texel_indices, prefix):
+            start = time.perf_counter()
+            for k in texel_indices:
+                renderer.render(positions[k:k + 1], normals[k:k + 1], offsets[k:k + 1], np.ones(1), 1, 1, resolution,
+                                f"{prefix}{k}")
+            return (time.perf_counter() - start) / len(texel_indices)
+
+        per_texel_s = seconds_per_call(subset, "texel_")
         # DESIGN §4's naive loop: the same calls with the scene synced anew each time (no persistent data).
         renderer.scene.render.use_persistent_data = False
         synced = subset[:max(1, len(subset) // 3)]
-        start = time.perf_counter()
-        for k in synced:
-            renderer.render(positions[k:k + 1], normals[k:k + 1], offsets[k:k + 1], np.ones(1), 1, 1, resolution,
-                            f"synced_texel_{k}")
-        per_texel_synced_s = (time.perf_counter() - start) / len(synced)
+        per_texel_synced_s = seconds_per_call(synced, "synced_texel_")
         renderer.scene.render.use_persistent_data = True
         renderer.render(positions[:1], normals[:1], offsets[:1], np.ones(1), 1, 1, resolution, "warmup_again")
         columns = math.ceil(math.sqrt(len(texels)))
