@@ -25,7 +25,8 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.bake_report import update_report
     from ..shaders.exr_io import write_exr
     from ..shaders.lightfield_tiles import read_images
-    from ..shaders.node_group import GROUP_NAME, VERSION_KEY, SGTextureLayout, build_node_group, flattened_node_count
+    from ..shaders.node_group import (GROUP_NAME, UNIFORM_BLOCK_LIMIT, VERSION_KEY, SGTextureLayout, build_node_group,
+                                      eevee_uniform_bytes, flattened_node_count)
     from ..shaders.octahedral import pixel_directions, pixel_solid_angles
     from ..shaders.sg_math import CLAMPED_COSINE_LEGENDRE, sg_irradiance
     from ..shaders.sg_shading import SH_L2_BAND, NumpyOps, encode_sharpness, sh_l2_basis
@@ -41,7 +42,8 @@ except ImportError:  # bpy as a module with the repository on sys.path
     from shaders.bake_report import update_report
     from shaders.exr_io import write_exr
     from shaders.lightfield_tiles import read_images
-    from shaders.node_group import GROUP_NAME, VERSION_KEY, SGTextureLayout, build_node_group, flattened_node_count
+    from shaders.node_group import (GROUP_NAME, UNIFORM_BLOCK_LIMIT, VERSION_KEY, SGTextureLayout, build_node_group,
+                                    eevee_uniform_bytes, flattened_node_count)
     from shaders.octahedral import pixel_directions, pixel_solid_angles
     from shaders.sg_math import CLAMPED_COSINE_LEGENDRE, sg_irradiance
     from shaders.sg_shading import SH_L2_BAND, NumpyOps, encode_sharpness, sh_l2_basis
@@ -245,13 +247,19 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
     seconds = time.perf_counter() - start
     sg_counts = {m.name: evaluated_count(m.sg_count) for o in plan.baked_objects for m in o.materials if m.glossy}
     most = groups.get(layout.sg_count)
+    uniform_bytes = {name: eevee_uniform_bytes(bpy.data.materials[name])["bytes"] for name in sorted(baked_materials)}
+    warnings = [f"'{name}' needs {size} bytes of EEVEE uniforms, more than the {UNIFORM_BLOCK_LIMIT} a GPU allows: "
+                f"EEVEE will draw it magenta (Cycles is unaffected); bake with fewer SGs"
+                for name, size in uniform_bytes.items() if size > UNIFORM_BLOCK_LIMIT]
     info = {"materials": sorted(baked_materials), "node_group": most.name if most else None,
             "nodes": flattened_node_count(most) if most else 0,  # nested groups expanded, as renderers compile it
             "node_groups": {g.name: flattened_node_count(g) for g in groups.values()}, "sg_counts": sg_counts,
             "sg_evaluations_saved": None if layout.sh_count else
             round(1 - sum(sg_counts.values()) / max(layout.sg_count * len(sg_counts), 1), 3),
             "encoder": "sh_l2" if layout.sh_count else "sg",
-            "image": image.name, "image_packed": bool(image.packed_file), "layout": layout.to_dict(), **measured}
+            "image": image.name, "image_packed": bool(image.packed_file), "layout": layout.to_dict(),
+            "eevee_uniform_bytes": uniform_bytes, "eevee_uniform_limit": UNIFORM_BLOCK_LIMIT, "warnings": warnings,
+            **measured}
     update_report(out_dir, plan.stage_hash("capture"), timings_s={"apply": seconds}, apply=info)
     if progress is not None:
         progress(1.0, f"{len(baked_materials)} materials baked")

@@ -86,6 +86,9 @@ class SGLF_OT_bake(bpy.types.Operator):
         _jobs.pop(context.scene.name, None)
         _cancel_requested.discard(context.scene.name)
         self.report({level}, f"SG Lightfield: {message}")
+        applied = job.results.get("apply") if job is not None and level == "INFO" else None
+        for warning in (applied or {}).get("warnings", ()):
+            self.report({"WARNING"}, f"SG Lightfield: {warning}")
 
     def execute(self, context):
         """Blocking bake (scripts, bpy as a module): the same job the modal operator steps through."""

@@ -211,7 +211,11 @@ def stage_summary(stage: str, result, plan) -> tuple[str, list]:
              for error in eevee.get("shader_errors", ())]
     if stage == "apply":
         groups = ", ".join(f"'{name}' {nodes} nodes" for name, nodes in result["node_groups"].items())
-        return f"{len(result['materials'])} materials baked (node groups: {groups})", []
+        uniforms = result.get("eevee_uniform_bytes") or {}
+        uniform_text = (f"; EEVEE uniforms up to {max(uniforms.values())} of {result['eevee_uniform_limit']} bytes"
+                        if uniforms else "")
+        return (f"{len(result['materials'])} materials baked (node groups: {groups}){uniform_text}",
+                result.get("warnings", []))
     return "", []
 
 

@@ -366,10 +366,12 @@ def bench_apply(out_root: Path, sg_counts=(4, 8, 16, 32)) -> list[dict]:
         report = __import__("json").loads((out / "report.json").read_text())
         _, seconds, failed = render_eevee(scene, [scene.camera.name] * 3, out)
         rows.append({"sg_count": n, "nodes": report["apply"]["nodes"], "apply_s": report["timings_s"].get("apply"),
+                     "eevee_uniform_bytes": max((report["apply"].get("eevee_uniform_bytes") or {0: 0}).values()),
                      "eevee_first_render_s": round(seconds[0], 2),
                      "eevee_compiled_render_s": round(min(seconds[1:]), 2),
                      "eevee_compile_s": round(seconds[0] - min(seconds[1:]), 2), "eevee_shader_errors": failed})
-        print(f"apply N={n:>2}: {rows[-1]['nodes']} nodes, apply {rows[-1]['apply_s']} s, EEVEE first render "
+        print(f"apply N={n:>2}: {rows[-1]['nodes']} nodes, EEVEE uniforms {rows[-1]['eevee_uniform_bytes']} bytes, "
+              f"apply {rows[-1]['apply_s']} s, EEVEE first render "
               f"{rows[-1]['eevee_first_render_s']} s, compiled {rows[-1]['eevee_compiled_render_s']} s "
               f"-> compile ~{rows[-1]['eevee_compile_s']} s" + (f"; shaders FAILED: {failed}" if failed else ""))
     return rows

@@ -28,7 +28,7 @@ except ImportError:
     from shaders.sg_shading import shade
 
 GROUP_NAME = "SG Lightfield"
-GROUP_VERSION = 2  # 2: the local-warp glossy (sg_math.sg_glossy) in nested groups
+GROUP_VERSION = 3  # 3: every node input fed from a computed value (EEVEE uniform block), vectors as components
 VERSION_KEY = "sglf_version"
 COLUMN_NODES = 40  # nodes per column in the automatic layout
 
@@ -68,11 +68,23 @@ class SGTextureLayout:
 
 
 SOCKET_TYPES = {"VALUE": "NodeSocketFloat", "VECTOR": "NodeSocketVector", "RGBA": "NodeSocketColor"}
+ZERO_INPUT = "zero"  # a nested group's input carrying the computed 0 its constants are made from
+UNIFORM_BLOCK_LIMIT = 65536  # bytes of EEVEE's per-material uniform block ("node_tree"); also desktop GPUs' usual limit
+
+
+class Vec(tuple):
+    """A vector of the node backend kept as its three components (sockets or numbers)."""
+
+    __slots__ = ()
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def socket_type(value) -> str:
-    """Interface socket type for a NodeOps value: an output socket, a Python number or a 3-tuple."""
-    if isinstance(value, (int, float)):
+    """Interface socket type for a NodeOps value: an output socket, a Python number, a 3-tuple or a Vec."""
+    if _is_number(value):
         return "NodeSocketFloat"
     if isinstance(value, tuple):
         return "NodeSocketVector"
@@ -80,19 +92,37 @@ def socket_type(value) -> str:
 
 
 class NodeOps:
-    """sg_shading operations as shader nodes. Constants stay Python numbers until an input needs them."""
+    """sg_shading operations as shader nodes.
 
-    def __init__(self, tree, subgroups=None):
+    EEVEE gives a material one uniform block of at most 64 KiB, and every input of a node's GLSL function that no
+    computed value feeds takes a slot in it: an unlinked socket, one fed by a Value node or by nodes Blender folds
+    because they only see constants, and the unused inputs of a node too (the third of a binary Math node, the
+    second and third vectors of Vector Math's Normalize). Measured on the baked courtyard: 125168 bytes at 16 SGs,
+    so EEVEE drew its materials magenta (docs/design-additions.md section 14). So with `linked_constants` this
+    backend feeds every input from a computed value:
+    - vectors are kept as their components (Vec) and vector arithmetic is scalar MULTIPLY_ADD (a*b+c), the one
+      Math operation that uses all three inputs; the rest (divide, min, max, exp, sqrt, ...) leave 1-2 floats;
+    - a constant is computed once per tree from a per-pixel zero (anchor - anchor at the top, a 'zero' input in a
+      nested group), so Blender cannot fold it, and linked from there to every use (4 bytes per constant and tree
+      instance: cheaper in build time than passing each constant into every instance).
+    Without `linked_constants` (Cycles-only trees, e.g. the hair reference), constants are socket values.
+    """
+
+    def __init__(self, tree, subgroups=None, *, anchor=None, group_input=None, linked_constants=None):
         self.tree = tree
         self.count = 0
-        self.gate = None  # a non-negative colour later texture lookups are made to depend on
-        self.subgroups = {} if subgroups is None else subgroups  # call name -> nested node group, built once
+        self.gate = None  # a non-negative value later texture lookups are made to depend on
+        self.subgroups = {} if subgroups is None else subgroups  # call name -> (nested group, takes a 'zero')
+        self.linked_constants = (anchor is not None or group_input is not None) if linked_constants is None \
+            else linked_constants
+        self.anchor = anchor  # top level: a scalar socket that varies per pixel (the zero is made from it)
+        self.group_input = group_input  # nested group: its Group Input node (its 'zero' arrives there)
+        self._constants = {}  # value -> socket
+        self._zero = None
+        self._split = {}  # vector socket pointer -> Vec of its components
+        self._combined = {}  # Vec key -> CombineXYZ output
 
-    def barrier(self, value):
-        """Make later texture lookups depend on `value` (a sum that is >= 0) by adding min(value, 0) = 0 to their
-        UVs. Cycles' SVM compiler otherwise schedules every lookup of the graph first and runs out of its
-        255-slot stack (measured: "out of SVM stack space" and black materials at N = 8 with IWEV)."""
-        self.gate = None if isinstance(value, tuple) else value
+    # -- nodes, links and constants --------------------------------------------------------------------------
 
     def _node(self, kind, **props):
         node = self.tree.nodes.new(kind)
@@ -103,36 +133,54 @@ class NodeOps:
         self.count += 1
         return node
 
-    def call(self, name, function, **inputs):
-        """function(ops, **inputs) -> {output: value} as one Group node. The nested group `<tree name> / name` is
-        built on the first call and instanced after that: each node and link bpy adds costs time that grows with the
-        tree's size, so one flat group takes time quadratic in its size (measured: 0.4 s for 500 Math nodes, 18 s
-        for 2000), while the renderers flatten nested groups back into the same graph."""
-        if name not in self.subgroups:
-            self.subgroups[name] = self._build_subgroup(f"{self.tree.name} / {name}", function, inputs)
-        node = self._node("ShaderNodeGroup", node_tree=self.subgroups[name])
-        for key, value in inputs.items():
-            self._feed(node.inputs[key], value)
-        return {socket.name: socket for socket in node.outputs}
+    def zero(self):
+        """A computed 0 (anchor - anchor), or the number 0 without linked constants."""
+        if not self.linked_constants:
+            return 0.0
+        if self._zero is None:
+            if self.group_input is not None:
+                self.tree.interface.new_socket(ZERO_INPUT, in_out="INPUT", socket_type="NodeSocketFloat")
+                self._zero = self.group_input.outputs[ZERO_INPUT]
+            else:
+                node = self._node("ShaderNodeMath", operation="SUBTRACT")
+                self.tree.links.new(self.anchor, node.inputs[0])
+                self.tree.links.new(self.anchor, node.inputs[1])
+                self._zero = node.outputs[0]
+        return self._zero
 
-    def _build_subgroup(self, name, function, inputs):
-        group = new_or_cleared_group(name)
-        for key, value in inputs.items():
-            group.interface.new_socket(key, in_out="INPUT", socket_type=socket_type(value))
-        ops = NodeOps(group, self.subgroups)
-        group_inputs = ops._node("NodeGroupInput")
-        outputs = function(ops, **{key: group_inputs.outputs[key] for key in inputs})
-        for key, value in outputs.items():
-            group.interface.new_socket(key, in_out="OUTPUT", socket_type=socket_type(value))
-        group_outputs = ops._node("NodeGroupOutput")
-        for key, value in outputs.items():
-            ops._feed(group_outputs.inputs[key], value)
-        group[VERSION_KEY] = GROUP_VERSION
-        return group
+    def constant_socket(self, value: float):
+        """The computed socket that carries `value` in this tree (made on first use)."""
+        value = float(value)
+        if value not in self._constants:
+            if value == 0.0:
+                self._constants[value] = self.zero()
+            else:
+                node = self._node("ShaderNodeMath", operation="MULTIPLY_ADD")
+                self.tree.links.new(self.zero(), node.inputs[0])
+                self.tree.links.new(self.zero(), node.inputs[1])
+                node.inputs[2].default_value = value
+                self._constants[value] = node.outputs[0]
+        return self._constants[value]
+
+    def launder(self, value):
+        """`value` passed through one node fed by the computed zero: what depends on it can no longer be folded
+        into per-use uniforms when a material leaves the group's input unlinked. Vec in, Vec out."""
+        if not self.linked_constants:
+            return value
+        if isinstance(value, tuple) or getattr(value, "type", "VALUE") != "VALUE":
+            return Vec(self._math("MULTIPLY_ADD", x, 1.0, self.zero()) for x in self._vec(value))
+        return self._math("MULTIPLY_ADD", value, 1.0, self.zero())
 
     def _feed(self, socket, value):
-        if hasattr(value, "links") or hasattr(value, "is_linked"):
+        if hasattr(value, "is_linked"):  # a socket (not `links`: that property scans every link of the tree)
             self.tree.links.new(value, socket)
+        elif isinstance(value, tuple):
+            if self.linked_constants or not all(_is_number(v) for v in value):
+                self.tree.links.new(self.vector_socket(value), socket)
+            else:
+                socket.default_value = (*value, 1.0)[:len(socket.default_value)]
+        elif self.linked_constants:
+            self.tree.links.new(self.constant_socket(value), socket)
         else:
             socket.default_value = value
 
@@ -142,39 +190,128 @@ class NodeOps:
             self._feed(socket, value)
         return node.outputs[0]
 
-    def _vmath(self, operation, *values, output=0, scale=None):
-        node = self._node("ShaderNodeVectorMath", operation=operation)
-        for socket, value in zip(node.inputs, values):
-            self._feed(socket, value)
-        if scale is not None:
-            self._feed(node.inputs["Scale"], scale)
-        return node.outputs[output]
+    def _vec(self, value) -> Vec:
+        """The components of a vector value (Vec, tuple or vector/colour socket; a socket is split once)."""
+        if isinstance(value, Vec):
+            return value
+        if isinstance(value, tuple):
+            return Vec(float(v) for v in value[:3])
+        key = value.as_pointer()
+        if key not in self._split:
+            node = self._node("ShaderNodeSeparateXYZ")
+            self.tree.links.new(value, node.inputs[0])
+            self._split[key] = Vec(node.outputs[:3])
+        return self._split[key]
+
+    def vector_socket(self, value):
+        """A vector socket carrying `value` (Vec components are combined once)."""
+        if not isinstance(value, tuple):
+            return value
+        value = self._vec(value)
+        key = tuple(("number", v) if _is_number(v) else v.as_pointer() for v in value)
+        if key not in self._combined:
+            node = self._node("ShaderNodeCombineXYZ")
+            for socket, component in zip(node.inputs, value):
+                self._feed(socket, component)
+            self._combined[key] = node.outputs[0]
+        return self._combined[key]
+
+    def barrier(self, value):
+        """Make later texture lookups depend on `value` (>= 0) by adding min(value, 0) = 0 to their UVs. Cycles' SVM
+        compiler otherwise schedules every lookup of the graph first and runs out of its 255-slot stack (measured:
+        "out of SVM stack space" and black materials at N = 8 with IWEV)."""
+        if isinstance(value, tuple):
+            value = next((v for v in self._vec(value) if not _is_number(v)), None)
+        self.gate = None if value is None or _is_number(value) else self.minimum(value, 0.0)
+
+    def call(self, name, function, **inputs):
+        """function(ops, **inputs) -> {output: value} as one Group node. The nested group `<tree name> / name` is
+        built on the first call and instanced after that: each node and link bpy adds costs time that grows with the
+        tree's size, so one flat group takes time quadratic in its size (measured: 0.4 s for 500 Math nodes, 18 s
+        for 2000), while the renderers flatten nested groups back into the same graph."""
+        if name not in self.subgroups:
+            self.subgroups[name] = self._build_subgroup(f"{self.tree.name} / {name}", function, inputs)
+        group, takes_zero = self.subgroups[name]
+        node = self._node("ShaderNodeGroup", node_tree=group)
+        for key, value in inputs.items():
+            self._feed(node.inputs[key], value)
+        if takes_zero:
+            self._feed(node.inputs[ZERO_INPUT], self.zero())
+        return {socket.name: socket for socket in node.outputs}
+
+    def _build_subgroup(self, name, function, inputs):
+        group = new_or_cleared_group(name)
+        for key, value in inputs.items():
+            group.interface.new_socket(key, in_out="INPUT", socket_type=socket_type(value))
+        group_inputs = self._node_in(group, "NodeGroupInput")
+        ops = NodeOps(group, self.subgroups, group_input=group_inputs if self.linked_constants else None,
+                      linked_constants=self.linked_constants)
+        ops.count = 1
+        outputs = function(ops, **{key: group_inputs.outputs[key] for key in inputs})
+        for key, value in outputs.items():
+            group.interface.new_socket(key, in_out="OUTPUT", socket_type=socket_type(value))
+        group_outputs = ops._node("NodeGroupOutput")
+        for key, value in outputs.items():
+            ops._feed(group_outputs.inputs[key], value)
+        group[VERSION_KEY] = GROUP_VERSION
+        return group, ops._zero is not None and self.linked_constants
+
+    @staticmethod
+    def _node_in(tree, kind):
+        node = tree.nodes.new(kind)
+        node.hide = True
+        return node
+
+    # -- scalar operations (numbers are folded here; Blender semantics: x / 0 = 0, sqrt of a negative = 0) -----
 
     def const(self, value):
         return float(value)
 
     def vconst(self, value):
-        return tuple(float(v) for v in value)
+        return Vec(float(v) for v in value)
+
+    def muladd(self, a, b, c):
+        """a * b + c."""
+        if (_is_number(a) and a == 0.0) or (_is_number(b) and b == 0.0):
+            return c
+        if _is_number(a) and _is_number(b):
+            a, b = a * b, 1.0
+        if _is_number(b) and b == 1.0:
+            if _is_number(a) and _is_number(c):
+                return a + c
+            if _is_number(c) and c == 0.0:
+                return a
+        return self._math("MULTIPLY_ADD", a, b, c)
 
     def add(self, a, b):
-        return self._math("ADD", a, b)
+        if _is_number(a) and not _is_number(b):
+            a, b = b, a
+        return self.muladd(a, 1.0, b)
 
     def sub(self, a, b):
-        return self._math("SUBTRACT", a, b)
+        if _is_number(b):
+            return self.add(a, -b)
+        return self.muladd(b, -1.0, a)
 
     def mul(self, a, b):
-        return self._math("MULTIPLY", a, b)
+        return self.muladd(a, b, 0.0)
 
     def div(self, a, b):
+        if _is_number(a) and _is_number(b):
+            return a / b if b != 0 else 0.0
+        if _is_number(b):
+            return self.mul(a, 1.0 / b if b != 0 else 0.0)
         return self._math("DIVIDE", a, b)
 
     def maximum(self, a, b):
-        return self._math("MAXIMUM", a, b)
+        return max(a, b) if _is_number(a) and _is_number(b) else self._math("MAXIMUM", a, b)
 
     def minimum(self, a, b):
-        return self._math("MINIMUM", a, b)
+        return min(a, b) if _is_number(a) and _is_number(b) else self._math("MINIMUM", a, b)
 
     def clamp(self, a, lo, hi):
+        if _is_number(a):
+            return min(max(a, lo), hi)
         node = self._node("ShaderNodeClamp", clamp_type="MINMAX")
         self._feed(node.inputs["Value"], a)
         self._feed(node.inputs["Min"], float(lo))
@@ -182,46 +319,58 @@ class NodeOps:
         return node.outputs[0]
 
     def exp(self, a):
-        return self._math("EXPONENT", a)
+        return math.exp(a) if _is_number(a) else self._math("EXPONENT", a)
 
     def sqrt(self, a):
-        return self._math("SQRT", a)
+        return math.sqrt(max(a, 0.0)) if _is_number(a) else self._math("SQRT", a)
+
+    def floor(self, a):
+        return math.floor(a) if _is_number(a) else self._math("FLOOR", a)
 
     def sin(self, a):
-        return self._math("SINE", a)
+        return math.sin(a) if _is_number(a) else self._math("SINE", a)
 
     def acos(self, a):
-        return self._math("ARCCOSINE", a)
+        return math.acos(min(max(a, -1.0), 1.0)) if _is_number(a) else self._math("ARCCOSINE", a)
 
     def power(self, a, exponent):
         return self._math("POWER", a, float(exponent))
 
+    # -- vector operations, component by component ---------------------------------------------------------
+
     def dot(self, a, b):
-        return self._vmath("DOT_PRODUCT", a, b, output="Value")
+        total = 0.0
+        for x, y in zip(self._vec(a), self._vec(b)):
+            total = self.muladd(x, y, total)
+        return total
 
     def cross(self, a, b):
-        return self._vmath("CROSS_PRODUCT", a, b)
+        (ax, ay, az), (bx, by, bz) = self._vec(a), self._vec(b)
+        return Vec(self.muladd(self.mul(p, q), -1.0, self.mul(r, s))
+                   for r, s, p, q in ((ay, bz, az, by), (az, bx, ax, bz), (ax, by, ay, bx)))
 
     def normalize(self, a):
-        return self._vmath("NORMALIZE", a)
+        a = self._vec(a)
+        inverse_length = self.div(1.0, self.sqrt(self.dot(a, a)))  # 0 for the zero vector, as Blender's node
+        return Vec(self.mul(x, inverse_length) for x in a)
 
     def vadd(self, a, b):
-        return self._vmath("ADD", a, b)
+        return Vec(self.add(x, y) for x, y in zip(self._vec(a), self._vec(b)))
 
     def vsub(self, a, b):
-        return self._vmath("SUBTRACT", a, b)
+        return Vec(self.sub(x, y) for x, y in zip(self._vec(a), self._vec(b)))
 
-    def vmul(self, a, b):
-        return self._vmath("MULTIPLY", a, b)
+    def vmul(self, a, b):  # componentwise
+        return Vec(self.mul(x, y) for x, y in zip(self._vec(a), self._vec(b)))
 
     def vscale(self, a, s):
-        return self._vmath("SCALE", a, scale=s)
+        return Vec(self.mul(x, s) for x in self._vec(a))
 
     def vmax(self, a, b):
-        return self._vmath("MAXIMUM", a, b)
+        return Vec(self.maximum(x, y) for x, y in zip(self._vec(a), self._vec(b)))
 
     def vmin(self, a, b):
-        return self._vmath("MINIMUM", a, b)
+        return Vec(self.minimum(x, y) for x, y in zip(self._vec(a), self._vec(b)))
 
 
 def flattened_node_count(tree) -> int:
@@ -242,6 +391,17 @@ def new_or_cleared_group(name: str):
     return group
 
 
+def closest_texture(tree, image):
+    """An Image Texture node reading `image` at the nearest texel, clamped at the edges. Its texture mapping is
+    refreshed once: a node made from Python keeps an identity mapping that Blender has not yet flagged as one, and
+    EEVEE then evaluates that 4x4 matrix from 88-96 bytes of uniforms per node (measured)."""
+    node = tree.nodes.new("ShaderNodeTexImage")
+    node.image, node.interpolation, node.extension = image, "Closest", "EXTEND"
+    node.texture_mapping.translation = node.texture_mapping.translation  # its update sets the unit-matrix flag
+    node.hide = True
+    return node
+
+
 def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GROUP_NAME):
     """Create or update the node group and its nested groups (`<name> / ...`); returns it. `image` is the packed SG
     image (Non-Color, half float)."""
@@ -251,66 +411,202 @@ def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GRO
                ("Albedo", "INPUT", "NodeSocketColor"), ("Total", "OUTPUT", "NodeSocketColor"),
                ("Glossy", "OUTPUT", "NodeSocketColor"), ("Diffuse", "OUTPUT", "NodeSocketColor"),
                ("Environment", "OUTPUT", "NodeSocketColor")]
-    for socket_name, in_out, socket_type in sockets:
-        group.interface.new_socket(socket_name, in_out=in_out, socket_type=socket_type)
-    ops = NodeOps(group)
-    inputs = ops._node("NodeGroupInput")
-    geometry = ops._node("ShaderNodeNewGeometry")
+    for socket_name, in_out, socket_type_name in sockets:
+        group.interface.new_socket(socket_name, in_out=in_out, socket_type=socket_type_name)
+    inputs = NodeOps._node_in(group, "NodeGroupInput")
+    geometry = NodeOps._node_in(group, "ShaderNodeNewGeometry")
+    position = NodeOps._node_in(group, "ShaderNodeSeparateXYZ")
+    group.links.new(geometry.outputs["Position"], position.inputs[0])
+    ops = NodeOps(group, anchor=position.outputs["X"])
+    ops.count = 3
+    # The material may leave these unlinked (constants): laundered so nothing downstream folds into uniforms.
+    uv, normal, f0, albedo = (ops.launder(inputs.outputs[key]) for key in ("UV", "Normal", "F0", "Albedo"))
+    roughness = ops.launder(inputs.outputs["Roughness"])
     columns, rows = layout.grid
     width, height = (float(v) for v in layout.atlas_size)
     # Shared by every tile: the four texel centres around UV (clamped inside the atlas) and their weights.
-    texel = ops._vmath("SUBTRACT", ops._vmath("MULTIPLY", inputs.outputs["UV"], (width, height, 1.0)), (0.5, 0.5, 0.0))
-    base = ops._vmath("FLOOR", texel)
-    fraction = ops._node("ShaderNodeSeparateXYZ")
-    group.links.new(ops._vmath("SUBTRACT", texel, base), fraction.inputs[0])
-    tx, ty = fraction.outputs["X"], fraction.outputs["Y"]
-    corners = []
-    for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
-        corner = ops._vmath("MULTIPLY", ops._vmath("ADD", base, (dx + 0.5, dy + 0.5, 0.0)),
-                            (1.0 / width, 1.0 / height, 1.0))
-        corner = ops._vmath("MAXIMUM", ops._vmath("MINIMUM", corner, (1 - 0.5 / width, 1 - 0.5 / height, 1.0)),
-                            (0.5 / width, 0.5 / height, 0.0))
-        wx = tx if dx else ops.sub(1.0, tx)
-        wy = ty if dy else ops.sub(1.0, ty)
-        corners.append((corner, ops.mul(wx, wy)))
-    cache = {}
-    corner_inputs = {f"corner {i}": corner for i, (corner, _) in enumerate(corners)}
-    corner_inputs.update({f"weight {i}": weight for i, (_, weight) in enumerate(corners)})
+    texel_x, texel_y = ops.sub(ops.mul(uv[0], width), 0.5), ops.sub(ops.mul(uv[1], height), 0.5)
+    base_x, base_y = ops.floor(texel_x), ops.floor(texel_y)
+    tx, ty = ops.sub(texel_x, base_x), ops.sub(texel_y, base_y)
+    corner_inputs = {}
+    for i, (dx, dy) in enumerate(((0, 0), (1, 0), (0, 1), (1, 1))):
+        cx = ops.clamp(ops.mul(ops.add(base_x, dx + 0.5), 1.0 / width), 0.5 / width, 1 - 0.5 / width)
+        cy = ops.clamp(ops.mul(ops.add(base_y, dy + 0.5), 1.0 / height), 0.5 / height, 1 - 0.5 / height)
+        corner_inputs[f"corner {i}"] = Vec((cx, cy, 0.0))
+        corner_inputs[f"weight {i}"] = ops.mul(tx if dx else ops.sub(1.0, tx), ty if dy else ops.sub(1.0, ty))
 
-    def bilinear_tile(tile_ops, offset, **corner_sockets):
-        """The four 'Closest' lookups of the tile at `offset` (column, row), blended: {'colour', 'alpha'}."""
-        color_sum = alpha_sum = None
-        for i in range(len(corners)):
-            shifted = tile_ops._vmath("ADD", corner_sockets[f"corner {i}"], offset)
-            uv = tile_ops._vmath("MULTIPLY", shifted, (1.0 / columns, 1.0 / rows, 1.0))
-            texture = tile_ops._node("ShaderNodeTexImage", image=image, interpolation="Closest", extension="EXTEND")
-            tile_ops.tree.links.new(uv, texture.inputs["Vector"])
+    def bilinear_tile(tile_ops, offset_x, offset_y, gate, **corner_sockets):
+        """The four 'Closest' lookups of the tile whose corner in the image is (offset_x, offset_y), blended:
+        {'colour', 'alpha'}. `gate` is 0, computed from what the lookups must wait for (NodeOps.barrier)."""
+        offset_x = tile_ops.add(offset_x, gate)
+        colour, alpha = Vec((0.0, 0.0, 0.0)), 0.0
+        for i in range(4):
+            corner = tile_ops._vec(corner_sockets[f"corner {i}"])
+            uv_in_image = Vec((tile_ops.muladd(corner[0], 1.0 / columns, offset_x),
+                               tile_ops.muladd(corner[1], 1.0 / rows, offset_y), 0.0))
+            texture = closest_texture(tile_ops.tree, image)
+            tile_ops.tree.links.new(tile_ops.vector_socket(uv_in_image), texture.inputs["Vector"])
             weight = corner_sockets[f"weight {i}"]
-            color = tile_ops.vscale(texture.outputs["Color"], weight)
-            alpha = tile_ops.mul(texture.outputs["Alpha"], weight)
-            color_sum = color if color_sum is None else tile_ops.vadd(color_sum, color)
-            alpha_sum = alpha if alpha_sum is None else tile_ops.add(alpha_sum, alpha)
-        return {"colour": color_sum, "alpha": alpha_sum}
+            colour = Vec(tile_ops.muladd(x, weight, total)
+                         for x, total in zip(tile_ops._vec(texture.outputs["Color"]), colour))
+            alpha = tile_ops.muladd(texture.outputs["Alpha"], weight, alpha)
+        return {"colour": colour, "alpha": alpha}
+
+    cache = {}
 
     def lookup(kind, j):
         if (kind, j) not in cache:
             col, row = layout.tile_offset(kind, j)
-            offset = (float(col), float(row), 0.0)
-            if ops.gate is not None:  # exactly (col, row, 0), but only once the previous SG is done
-                offset = ops._vmath("ADD", ops._vmath("MINIMUM", ops.gate, (0.0, 0.0, 0.0)), offset)
-            tile = ops.call("bilinear tile", bilinear_tile, offset=offset, **corner_inputs)
+            gate = ops.gate if ops.gate is not None else ops.zero()  # 0, once the previous SG is done
+            tile = ops.call("bilinear tile", bilinear_tile, offset_x=col / columns, offset_y=row / rows, gate=gate,
+                            **corner_inputs)
             cache[(kind, j)] = (tile["colour"], tile["alpha"])
         return cache[(kind, j)]
 
-    result = shade(ops, lookup, inputs.outputs["Normal"], geometry.outputs["Incoming"], inputs.outputs["Roughness"],
-                   inputs.outputs["F0"], inputs.outputs["Albedo"], layout.sg_count, layout.iwev_count,
-                   [tuple(e) for e in env_sgs], layout.has_irradiance, layout.sh_count)
+    result = shade(ops, lookup, normal, geometry.outputs["Incoming"], roughness, f0, albedo, layout.sg_count,
+                   layout.iwev_count, [tuple(e) for e in env_sgs], layout.has_irradiance, layout.sh_count)
     outputs = ops._node("NodeGroupOutput")
     outputs.location = (200 * (ops.count // COLUMN_NODES + 1), 0)
     for key, socket_name in (("total", "Total"), ("glossy", "Glossy"), ("diffuse", "Diffuse"),
                              ("environment", "Environment")):
-        ops._feed(outputs.inputs[socket_name], result[key] if not isinstance(result[key], tuple)
-                  else (*result[key], 1.0))
+        ops._feed(outputs.inputs[socket_name], result[key])
     group[VERSION_KEY] = GROUP_VERSION
     group["sglf_layout"] = str(layout.to_dict())
     return group
+
+
+_UNIFORM_FLOATS = {"VALUE": 1, "INT": 1, "BOOLEAN": 1, "VECTOR": 3, "RGBA": 4}
+_NON_CONSTANT_SOURCES = {"ShaderNodeNewGeometry", "ShaderNodeUVMap", "ShaderNodeAttribute", "ShaderNodeTexImage",
+                         "ShaderNodeTexCoord", "ShaderNodeObjectInfo", "ShaderNodeLightPath", "ShaderNodeCameraData"}
+
+
+def _node_table(tree, tables):
+    """Per node of `tree`: (bl_idname, nested tree, identity texture mapping, [(input identifier, type, enabled,
+    feeding (node, output identifier) or None)]), keyed by node pointer; plus the active group output. Read once."""
+    key = tree.as_pointer()
+    if key not in tables:
+        feeds = {}
+        for link in tree.links:
+            if link.is_valid and not link.is_muted:
+                feeds[(link.to_node.as_pointer(), link.to_socket.identifier)] = (link.from_node.as_pointer(),
+                                                                                 link.from_socket.identifier)
+        nodes, group_output, by_pointer = {}, None, {}
+        for node in tree.nodes:
+            pointer = node.as_pointer()
+            by_pointer[pointer] = node
+            identity = True
+            if node.bl_idname == "ShaderNodeTexImage":
+                m = node.texture_mapping
+                identity = (tuple(m.translation) == (0, 0, 0) and tuple(m.rotation) == (0, 0, 0)
+                            and tuple(m.scale) == (1, 1, 1) and not m.use_min and not m.use_max)
+            if node.bl_idname == "NodeGroupOutput" and node.is_active_output:
+                group_output = pointer
+            inputs = [(s.identifier, s.type, s.enabled, feeds.get((pointer, s.identifier))) for s in node.inputs]
+            nodes[pointer] = (node.bl_idname, getattr(node, "node_tree", None), identity, inputs)
+        tables[key] = (nodes, group_output, by_pointer)
+    return tables[key]
+
+
+def eevee_uniform_bytes(material) -> dict:
+    """The size EEVEE gives `material`'s uniform block ("node_tree", at most UNIFORM_BLOCK_LIMIT bytes; beyond it the
+    shader does not link and the material renders magenta), counted from its node graph with the nested groups
+    expanded, as Blender 5.0's GPU code generation makes it (gpu_node_graph.cc, gpu_codegen.cc):
+    - every float/vector/colour input of a node that reaches the surface output takes a uniform, unavailable ones
+      included, unless a node that computes something feeds it; a Value node, or a node whose inputs are all
+      constants (which Blender folds), counts as a constant;
+    - an Image Texture node adds its mapping matrix (4 vec4 + 2 vec3) unless its mapping is the identity (the
+      builder's nodes have Blender's identity flag refreshed, `closest_texture`; a Python-made node without that
+      refresh is counted too low);
+    - vec4s and vec3s take 16 bytes each, floats fill the vec3s' fourth slots first, plus the cryptomatte float.
+    Checked against the size Blender reports when a shader fails (tests/test_apply.py). Returns
+    {'bytes', 'floats', 'vec3', 'vec4', 'fits'}."""
+    counts = {1: 0, 3: 0, 4: 0}
+    tables, constant_memo, seen = {}, {}, set()
+
+    def source(tree, feed, ctx):
+        """(tree, node pointer, ctx) of the node computing what a link `feed` = (node, output identifier) carries,
+        through reroutes and group boundaries; None when it ends at an unlinked group input."""
+        while feed is not None:
+            nodes, _, _ = _node_table(tree, tables)
+            pointer, identifier = feed
+            kind, nested, _, inputs = nodes[pointer]
+            if kind == "NodeReroute":
+                feed = inputs[0][3]
+            elif kind == "NodeGroupInput":
+                if not ctx:
+                    return None
+                (tree, group_pointer), ctx = ctx[-1], ctx[:-1]
+                group_inputs = _node_table(tree, tables)[0][group_pointer][3]
+                feed = next((f for ident, _, enabled, f in group_inputs if ident == identifier and enabled), None)
+            elif kind == "ShaderNodeGroup":
+                if nested is None:
+                    return None
+                nested_nodes, output, _ = _node_table(nested, tables)
+                if output is None:
+                    return None
+                ctx = ctx + ((tree, pointer),)
+                tree = nested
+                feed = next((f for ident, _, _, f in nested_nodes[output][3] if ident == identifier), None)
+            else:
+                return tree, pointer, ctx
+        return None
+
+    def context_key(tree, pointer, ctx):
+        return pointer, tuple(p for _, p in ctx)
+
+    def is_constant(tree, pointer, ctx):
+        """Whether the node computes only from constants (iteratively: user graphs can be thousands deep)."""
+        stack = [(tree, pointer, ctx)]
+        while stack:
+            tree_, pointer_, ctx_ = stack[-1]
+            key = context_key(tree_, pointer_, ctx_)
+            if key in constant_memo:
+                stack.pop()
+                continue
+            kind, _, _, inputs = _node_table(tree_, tables)[0][pointer_]
+            if kind in _NON_CONSTANT_SOURCES:
+                constant_memo[key] = False
+                stack.pop()
+                continue
+            feeding = [found for _, _, enabled, feed in inputs if enabled
+                       and (found := source(tree_, feed, ctx_)) is not None]
+            pending = [found for found in feeding if context_key(*found) not in constant_memo]
+            if pending:
+                stack.extend(pending)
+                continue
+            constant_memo[key] = all(constant_memo[context_key(*found)] for found in feeding)
+            stack.pop()
+        return constant_memo[context_key(tree, pointer, ctx)]
+
+    def visit(tree, pointer, ctx):
+        stack = [(tree, pointer, ctx)]
+        while stack:
+            tree, pointer, ctx = stack.pop()
+            key = context_key(tree, pointer, ctx)
+            if key in seen:
+                continue
+            seen.add(key)
+            kind, _, identity, inputs = _node_table(tree, tables)[0][pointer]
+            if not identity:
+                counts[4] += 4
+                counts[3] += 2
+            for identifier, socket_type_name, enabled, feed in inputs:
+                found = source(tree, feed, ctx) if enabled else None
+                if found is not None and not is_constant(*found):
+                    stack.append(found)
+                elif socket_type_name in _UNIFORM_FLOATS and not (kind == "ShaderNodeTexImage"
+                                                                  and identifier == "Vector"):
+                    counts[_UNIFORM_FLOATS[socket_type_name]] += 1  # an unlinked texture Vector is the UV map
+
+    tree = material.node_tree
+    nodes, _, by_pointer = _node_table(tree, tables)
+    for pointer, (kind, _, _, inputs) in nodes.items():
+        if kind == "ShaderNodeOutputMaterial" and by_pointer[pointer].is_active_output:
+            for identifier, _, enabled, feed in inputs:
+                found = source(tree, feed, ()) if enabled else None
+                if found is not None:
+                    visit(*found)
+    floats, vec3, vec4 = counts[1] + 1, counts[3], counts[4]  # + the cryptomatte hash
+    size = 16 * (vec4 + vec3) + 4 * max(0, floats - vec3)
+    size = (size + 15) // 16 * 16
+    return {"bytes": size, "floats": floats, "vec3": vec3, "vec4": vec4, "fits": size <= UNIFORM_BLOCK_LIMIT}

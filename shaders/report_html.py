@@ -56,6 +56,9 @@ def write_report_html(out_dir) -> Path:
     if apply.get("node_groups"):
         rows.append(("node groups (nodes)", ", ".join(f"{k}: {v}" for k, v in apply["node_groups"].items())))
         rows.append(("SG evaluations saved by per-material counts", apply.get("sg_evaluations_saved")))
+        rows += [(f"EEVEE uniform block of '{name}' (bytes, at most {apply.get('eevee_uniform_limit')})", size)
+                 for name, size in (apply.get("eevee_uniform_bytes") or {}).items()]
+        rows += [("apply warning", warning) for warning in apply.get("warnings", ())]
     rows += [(f"{stage} seconds", seconds) for stage, seconds in timings.items()]
     errors = report.get("errors", {})
     rows += [(f"error {key}", errors.get(key)) for key in ("rmse", "psnr", "flip", "reference_noise_rmse",

@@ -283,14 +283,23 @@ def shade(ops, lookup, normal, view, roughness, f0, albedo, sg_count: int, iwev_
         glossy = ops.vmul(convolve_sh(ops, pixel, lookup), factor)
     environment = black
     if env_sgs and iwev_count:
-        env = black
-        for axis, sharpness, amplitude in env_sgs:
-            env = ops.vadd(env, glossy_of(ops.vconst(axis), ops.const(sharpness), ops.vconst(amplitude)))
+        def environment_glossy(env_ops, **pixel_inputs):  # one Group node in the node backend, its SGs constants
+            env = env_ops.vconst((0.0, 0.0, 0.0))
+            for axis, sharpness, amplitude in env_sgs:
+                env = env_ops.vadd(env, env_ops.call("glossy SG", glossy_sg, **pixel_inputs, axis=env_ops.vconst(axis),
+                                                     sharpness=env_ops.const(sharpness),
+                                                     amplitude=env_ops.vconst(amplitude))["glossy"])
+            return {"glossy": env}
+
+        env = ops.call("environment", environment_glossy, **pixel, f0=f0)["glossy"]
         visibility = black
         for j in range(iwev_count):
             axis, encoded = lookup("iwev", j)
             amplitude, _ = lookup("iwev_amp", j)
-            visibility = ops.vadd(visibility, sg_value(ops, pixel["z"], axis, decode_sharpness(ops, encoded), amplitude))
+            value = ops.call("SG value", lambda value_ops, **sg: {"value": sg_value(value_ops, **sg)},
+                             direction=pixel["z"], axis=axis, sharpness=decode_sharpness(ops, encoded),
+                             amplitude=amplitude)["value"]
+            visibility = ops.vadd(visibility, value)
             ops.barrier(visibility)
         visibility = ops.vmax(ops.vmin(visibility, ops.vconst((1.0, 1.0, 1.0))), black)  # W_E in [0, 1]
         environment = ops.vmul(env, visibility)

@@ -126,15 +126,8 @@ def test_sixteen_sgs_with_environment_visibility_fit_in_cycles_svm_stack(tmp_pat
     n, iwev, h, w = 16, 16, 4, 4
     rng = np.random.default_rng(2)
     layout = SGTextureLayout(n, iwev_count=iwev, has_irradiance=True, atlas_size=(2 * w, 2 * h))
-    env_sgs = [(tuple(m.safe_normalize(rng.normal(size=3))), float(rng.uniform(1, 100)), (1.0, 0.8, 0.6))
-               for _ in range(ENV_SG_COUNT)]
-    cells = {("irradiance", 0): np.concatenate([rng.uniform(0, 3, (h, w, 3)), np.ones((h, w, 1))], -1)}
-    for j in range(n):
-        cells[("sg", j)] = np.concatenate([rng.normal(size=(h, w, 3)), rng.uniform(0.2, 0.8, (h, w, 1))], -1)
-        cells[("amp", j)] = np.concatenate([rng.uniform(0, 5, (h, w, 3)), np.zeros((h, w, 1))], -1)
-    for j in range(iwev):
-        cells[("iwev", j)] = np.concatenate([rng.normal(size=(h, w, 3)), rng.uniform(0, 1, (h, w, 1))], -1)
-        cells[("iwev_amp", j)] = np.concatenate([rng.uniform(0, 0.5, (h, w, 3)), np.zeros((h, w, 1))], -1)
+    env_sgs = _random_env_sgs(rng)
+    cells = _largest_groups_cells(n, iwev, h, w, rng)
     assert _parity_worst(tmp_path, layout, cells, env_sgs, (0.3,), (30.0,)) < 1e-3
 
 
@@ -434,3 +427,143 @@ def test_eevee_shader_failures_are_read_from_the_render_log():
     assert shader_errors(log) == ["Glossy Ground (SG bake): Uniform block node_tree too big (125168/65536)"]
     assert shader_errors(log + log) == shader_errors(log)  # one line per material, whatever the view count
     assert shader_errors("00:26.411  render           | Saved: 'ev/BLENDER_EEVEE_0.exr'\n") == []
+
+
+def _emission_material(name, color_socket_of):
+    """A material whose surface is Emission(colour); `color_socket_of(tree)` builds the nodes and returns the colour."""
+    mat = bpy.data.materials.new(name)
+    tree = mat.node_tree
+    tree.nodes.remove(tree.nodes["Principled BSDF"])
+    emission = tree.nodes.new("ShaderNodeEmission")
+    tree.links.new(color_socket_of(tree), emission.inputs["Color"])
+    tree.links.new(emission.outputs[0], tree.nodes["Material Output"].inputs["Surface"])
+    return mat
+
+
+def _sg_group_material(name, group):
+    def build(tree):
+        node = tree.nodes.new("ShaderNodeGroup")
+        node.node_tree = group
+        tree.links.new(tree.nodes.new("ShaderNodeUVMap").outputs[0], node.inputs["UV"])
+        tree.links.new(tree.nodes.new("ShaderNodeNewGeometry").outputs["Normal"], node.inputs["Normal"])
+        node.inputs["Roughness"].default_value = 0.3
+        node.inputs["F0"].default_value = (0.04, 0.5, 1.0, 1.0)
+        node.inputs["Albedo"].default_value = (0.8, 0.5, 0.2, 1.0)
+        return node.outputs["Total"]
+    return _emission_material(name, build)
+
+
+def _random_env_sgs(rng):
+    return [(tuple(m.safe_normalize(rng.normal(size=3))), float(rng.uniform(1, 100)), (1.0, 0.8, 0.6))
+            for _ in range(ENV_SG_COUNT)]
+
+
+def _largest_groups_cells(n, iwev, h, w, rng):
+    """Random parameter cells (h, w) of n SGs, iwev IWEV SGs and the irradiance."""
+    cells = {("irradiance", 0): np.concatenate([rng.uniform(0, 3, (h, w, 3)), np.ones((h, w, 1))], -1)}
+    for j in range(n):
+        cells[("sg", j)] = np.concatenate([rng.normal(size=(h, w, 3)), rng.uniform(0.2, 0.8, (h, w, 1))], -1)
+        cells[("amp", j)] = np.concatenate([rng.uniform(0, 5, (h, w, 3)), np.zeros((h, w, 1))], -1)
+    for j in range(iwev):
+        cells[("iwev", j)] = np.concatenate([rng.normal(size=(h, w, 3)), rng.uniform(0, 1, (h, w, 1))], -1)
+        cells[("iwev_amp", j)] = np.concatenate([rng.uniform(0, 0.5, (h, w, 3)), np.zeros((h, w, 1))], -1)
+    return cells
+
+
+def test_every_sg_count_the_settings_allow_fits_eevees_uniform_block():
+    """EEVEE gives a material at most 64 KiB of uniforms; the group used to need 5388 bytes per SG (courtyard's IWEV
+    materials rendered magenta from 8 SGs on). Now the most the settings allow (64 SGs, 16 IWEV SGs, 16 environment
+    SGs) fits, and the presets' largest (16/16/16) uses a quarter of it."""
+    from shaders.bake_plan import BakeInputError
+    from shaders.node_group import UNIFORM_BLOCK_LIMIT, eevee_uniform_bytes
+
+    with pytest.raises(BakeInputError):
+        BakeSettings.from_preset("draft", sg_count=65)  # 64 is the most a bake can ask for
+    env_sgs = _random_env_sgs(np.random.default_rng(3))
+    image = bpy.data.images.new("uniform budget", 8, 8, float_buffer=True)
+    sizes = {}
+    for n in (16, 64):
+        group = build_node_group(image, SGTextureLayout(n, iwev_count=16, atlas_size=(8, 8)), env_sgs,
+                                 name=f"SG Lightfield uniform budget {n}")
+        sizes[n] = eevee_uniform_bytes(_sg_group_material(f"uniform budget {n}", group))["bytes"]
+    assert sizes[64] < UNIFORM_BLOCK_LIMIT, sizes
+    assert sizes[16] < UNIFORM_BLOCK_LIMIT / 3, sizes  # measured 16608 (was 125168 with the old builder)
+    assert (sizes[64] - sizes[16]) / 48 < 800, sizes  # bytes per SG (measured ~470; was 5388)
+
+
+def test_eevee_compiles_the_largest_group_and_its_uniform_block_is_what_we_count(tmp_path):
+    """One EEVEE render of two planes: the presets' largest group (16 SGs, 16 IWEV SGs, 16 environment SGs) compiles
+    and shades as Cycles does; a material made to overflow the block fails as EEVEE does (magenta), and the size
+    Blender reports for it is exactly `eevee_uniform_bytes`."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from blender_addon.evaluate import shader_errors
+    from shaders.image_metrics import tonemap
+    from shaders.node_group import UNIFORM_BLOCK_LIMIT, eevee_uniform_bytes
+
+    n, iwev, h, w = 16, 16, 4, 4
+    rng = np.random.default_rng(2)
+    layout = SGTextureLayout(n, iwev_count=iwev, has_irradiance=True, atlas_size=(2 * w, 2 * h))
+    env_sgs = _random_env_sgs(rng)
+    tiles = {key: np.repeat(np.repeat(value, 2, axis=0), 2, axis=1)
+             for key, value in _largest_groups_cells(n, iwev, h, w, rng).items()}
+    path = write_exr(tmp_path / "packed.exr", pack_tiles(layout, tiles, (2 * h, 2 * w)), precision="half",
+                     channels=["R", "G", "B", "A"])
+    image = bpy.data.images.load(str(path))
+    image.colorspace_settings.name, image.alpha_mode = "Non-Color", "CHANNEL_PACKED"
+    image.pack()
+    group = build_node_group(image, layout, env_sgs, name="SG Lightfield EEVEE uniform check")
+    baked = _sg_group_material("Largest bake", group)
+
+    def overflowing_chain(tree):  # each Vector Math Scale leaves its two unused vector inputs as uniforms
+        value = tree.nodes.new("ShaderNodeNewGeometry").outputs["Normal"]
+        for _ in range(2200):
+            node = tree.nodes.new("ShaderNodeVectorMath")
+            node.operation = "SCALE"
+            tree.links.new(value, node.inputs[0])
+            node.inputs["Scale"].default_value = 1.0
+            value = node.outputs[0]
+        return value
+    overflowing = _emission_material("Overflowing", overflowing_chain)
+    expected = {mat.name: eevee_uniform_bytes(mat)["bytes"] for mat in (baked, overflowing)}
+    assert expected["Largest bake"] <= UNIFORM_BLOCK_LIMIT < expected["Overflowing"], expected
+
+    scene = bpy.data.scenes.new("eevee uniforms")
+    for x, mat in ((-1.1, baked), (1.1, overflowing)):
+        mesh = bpy.data.meshes.new(mat.name)
+        bm = bmesh.new()
+        bm.loops.layers.uv.new("UVMap")
+        bmesh.ops.create_grid(bm, x_segments=1, y_segments=1, size=1.0, calc_uvs=True)
+        bm.to_mesh(mesh)
+        mesh.materials.append(mat)
+        plane = bpy.data.objects.new(mat.name, mesh)
+        plane.location.x = x
+        scene.collection.objects.link(plane)
+    camera = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+    camera.data.type, camera.data.ortho_scale, camera.location = "ORTHO", 4.4, (0, 0, 5)
+    scene.collection.objects.link(camera)
+    scene.camera, scene.world = camera, bpy.data.worlds.new("black")
+    scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 64, 32, 100
+    blend = tmp_path / "uniforms.blend"
+    with active_scene(scene), quiet_stdout():
+        bpy.ops.wm.save_as_mainfile(filepath=str(blend), copy=True)
+    script = Path(__file__).resolve().parent.parent / "blender_addon" / "eevee_worker.py"
+    out = subprocess.run([sys.executable, str(script), str(blend), scene.name, str(tmp_path), "--engines",
+                          "BLENDER_EEVEE,CYCLES", "--samples", "4"], capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stderr[-2000:]
+    log = out.stdout + "\n" + out.stderr
+    failed = shader_errors(log)
+    assert len(failed) == 1 and "Overflowing" in failed[0], failed
+    reported = re.search(r"Uniform block node_tree too big \((\d+)/65536\)", log)
+    assert reported and int(reported.group(1)) == expected["Overflowing"], (reported, expected)
+    eevee = read_exr(tmp_path / "BLENDER_EEVEE_0.exr", channels=["R", "G", "B"])[0]
+    cycles = read_exr(tmp_path / "CYCLES_0.exr", channels=["R", "G", "B"])[0]
+    left, right = np.s_[8:24, 6:26], np.s_[8:24, 38:58]  # inside each plane
+    magenta = np.all(eevee == (1.0, 0.0, 1.0), axis=-1)  # what EEVEE draws for a shader that failed
+    assert magenta[right].all() and not magenta[left].any()
+    assert tonemap(cycles[left]).min() > 0.1  # the bake's plane is lit
+    assert np.abs(tonemap(eevee[left]) - tonemap(cycles[left])).mean() < 0.01  # same nodes, two engines
+    for mat in (baked, overflowing):
+        bpy.data.materials.remove(mat)
