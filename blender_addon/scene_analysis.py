@@ -99,7 +99,8 @@ def analyse_material(material, settings: BakeSettings) -> MaterialPlan:
     most = settings.sg_count or 16
     count = 0 if not glossy else most if settings.uniform_sg_count else auto_sg_count(roughness, most)
     reason = (f"roughness {roughness:.2f} < {GLOSSY_ROUGHNESS_MAX}: glossy, needs light-field SGs" if glossy else
-              f"roughness {roughness:.2f} >= {GLOSSY_ROUGHNESS_MAX}: irradiance only (lobe wider than ~40 deg)")
+              f"roughness {roughness:.2f} >= {GLOSSY_ROUGHNESS_MAX}: not baked, lobe wider than ~40 deg "
+              "(the renderer's own diffuse lighting; EEVEE's irradiance volumes give it indirect light)")
     if glossy and count < most:
         reason += f"; {count} SGs are within the error budget at this roughness"
     return MaterialPlan(name, float(roughness), float(metallic), glossy, count, reason)
@@ -268,7 +269,7 @@ def _build_plan(scene, settings: BakeSettings, depsgraph) -> BakePlan:
             continue
         texels = int(np.ceil(area * settings.texel_density**2)) if glossy else 0
         reason = ("glossy material(s): " + ", ".join(mp.name for mp in mat_plans if mp.glossy)) if glossy \
-            else "no glossy material: irradiance only"
+            else "no glossy material: not baked, left to the renderer's own lighting"
         objects.append(ObjectPlan(obj.name, round(area, 6), texels, glossy, mat_plans, reason))
     if not any(o.bake_lightfield for o in objects):
         raise BakeInputError("nothing to bake: no mesh has a glossy material (roughness below "

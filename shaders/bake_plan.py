@@ -18,7 +18,8 @@ PLAN_VERSION = 1
 
 # A material is 'glossy' (gets light-field SGs) below this Principled roughness. At 0.6 the warped
 # GGX lobe (alpha = 0.36, sharpness 2/alpha^2/8 = 1.9) is ~40 degrees wide: its view dependence is
-# well below what irradiance alone misses, so rougher materials get diffuse irradiance only.
+# well below what irradiance alone misses, so rougher materials are not baked: they keep the renderer's own
+# lighting (in EEVEE, its irradiance volumes carry their indirect light).
 GLOSSY_ROUGHNESS_MAX = 0.6
 
 # Chosen from `python -m headless.bench --sections knobs` (spheres, one knob at a time from the old Draft, glossy
