@@ -244,13 +244,13 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
             baked_materials.add(copy.name)
     scene[BAKE_RECORD_KEY] = json.dumps(record)
     _remove_unused_groups()  # of an earlier bake with other SG counts
+    uniform_bytes = {name: eevee_uniform_bytes(bpy.data.materials[name])["bytes"] for name in sorted(baked_materials)}
+    warnings = [f"'{name}' needs {size} bytes of EEVEE uniforms, more than the {UNIFORM_BLOCK_LIMIT} EEVEE allows: "
+                f"EEVEE will draw it magenta (Cycles is unaffected); bake with fewer SGs"
+                for name, size in uniform_bytes.items() if size > UNIFORM_BLOCK_LIMIT]
     seconds = time.perf_counter() - start
     sg_counts = {m.name: evaluated_count(m.sg_count) for o in plan.baked_objects for m in o.materials if m.glossy}
     most = groups.get(layout.sg_count)
-    uniform_bytes = {name: eevee_uniform_bytes(bpy.data.materials[name])["bytes"] for name in sorted(baked_materials)}
-    warnings = [f"'{name}' needs {size} bytes of EEVEE uniforms, more than the {UNIFORM_BLOCK_LIMIT} a GPU allows: "
-                f"EEVEE will draw it magenta (Cycles is unaffected); bake with fewer SGs"
-                for name, size in uniform_bytes.items() if size > UNIFORM_BLOCK_LIMIT]
     info = {"materials": sorted(baked_materials), "node_group": most.name if most else None,
             "nodes": flattened_node_count(most) if most else 0,  # nested groups expanded, as renderers compile it
             "node_groups": {g.name: flattened_node_count(g) for g in groups.values()}, "sg_counts": sg_counts,

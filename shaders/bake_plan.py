@@ -227,7 +227,12 @@ class BakePlan:
             for obj in data["objects"]:
                 for material in obj["materials"]:
                     material.pop("sg_count", None)
-        data.pop("warnings", None)
+        data.pop("warnings", None)  # prose: rewording it must not invalidate finished renders
+        data["environment"].pop("reason", None)
+        for obj in data["objects"]:
+            obj.pop("reason", None)
+            for material in obj["materials"]:
+                material.pop("reason", None)
         payload = json.dumps([stage, data], sort_keys=True, separators=(",", ":")).encode()
         return hashlib.sha256(payload).hexdigest()[:16]
 

@@ -283,7 +283,7 @@ def shade(ops, lookup, normal, view, roughness, f0, albedo, sg_count: int, iwev_
         glossy = ops.vmul(convolve_sh(ops, pixel, lookup), factor)
     environment = black
     if env_sgs and iwev_count:
-        def environment_glossy(env_ops, **pixel_inputs):  # one Group node in the node backend, its SGs constants
+        def environment_glossy(env_ops, **pixel_inputs):  # one Group node in the node backend; the SGs are its constants
             env = env_ops.vconst((0.0, 0.0, 0.0))
             for axis, sharpness, amplitude in env_sgs:
                 env = env_ops.vadd(env, env_ops.call("glossy SG", glossy_sg, **pixel_inputs, axis=env_ops.vconst(axis),

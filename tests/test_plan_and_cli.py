@@ -46,6 +46,25 @@ def test_plan_json_roundtrip_and_tamper_detection():
         BakePlan.from_dict(data)
 
 
+def test_stage_hashes_follow_what_outputs_depend_on_not_the_plans_wording():
+    """Rewording a reason or a warning keeps finished renders; a change in what is baked does not."""
+    import copy
+
+    plan = build_plan(build_demo_scene("demo:courtyard"), DRAFT)
+    hashes = {stage: plan.stage_hash(stage) for stage in ("capture", "render", "train")}
+    reworded = copy.deepcopy(plan)
+    reworded.environment.reason += " (reworded)"
+    reworded.warnings.append("a new warning")
+    for obj in reworded.objects:
+        obj.reason += " (reworded)"
+        for mat in obj.materials:
+            mat.reason += " (reworded)"
+    assert {stage: reworded.stage_hash(stage) for stage in hashes} == hashes
+    other = copy.deepcopy(plan)
+    other.baked_objects[0].texels += 1
+    assert all(other.stage_hash(stage) != hashes[stage] for stage in hashes)
+
+
 def test_empty_scene_is_one_clear_error():
     with pytest.raises(BakeInputError, match="no mesh objects .*empty"):
         build_plan(_scene_with(), DRAFT)
