@@ -26,7 +26,7 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.exr_io import write_exr
     from ..shaders.lightfield_tiles import read_images
     from ..shaders.node_group import (GROUP_NAME, UNIFORM_BLOCK_LIMIT, VERSION_KEY, SGTextureLayout, build_node_group,
-                                      eevee_uniform_bytes, flattened_node_count)
+                                      eevee_uniform_bytes, flattened_node_count, material_output)
     from ..shaders.octahedral import pixel_directions, pixel_solid_angles
     from ..shaders.sg_math import CLAMPED_COSINE_LEGENDRE, sg_irradiance
     from ..shaders.sg_shading import SH_L2_BAND, NumpyOps, encode_sharpness, sh_l2_basis
@@ -43,7 +43,7 @@ except ImportError:  # bpy as a module with the repository on sys.path
     from shaders.exr_io import write_exr
     from shaders.lightfield_tiles import read_images
     from shaders.node_group import (GROUP_NAME, UNIFORM_BLOCK_LIMIT, VERSION_KEY, SGTextureLayout, build_node_group,
-                                    eevee_uniform_bytes, flattened_node_count)
+                                    eevee_uniform_bytes, flattened_node_count, material_output)
     from shaders.octahedral import pixel_directions, pixel_solid_angles
     from shaders.sg_math import CLAMPED_COSINE_LEGENDRE, sg_irradiance
     from shaders.sg_shading import SH_L2_BAND, NumpyOps, encode_sharpness, sh_l2_basis
@@ -56,6 +56,7 @@ COPY_SUFFIX = " (SG bake)"
 COPY_KEY = BAKED_COPY_KEY  # on a baked copy: the original material's name
 FAKE_USER_KEY = "sglf_fake_user_set"  # on an original: we set its fake user (and clear it again)
 IMAGE_NAME = "SG Lightfield textures"
+CYCLES_SUFFIX = " (Cycles)"  # the node group of a baked material's Cycles output
 PACKED_FILE = "sg_packed.exr"
 
 
@@ -154,7 +155,9 @@ def _load_image(path: Path, pack: bool):
     return image
 
 
-def _baked_material(original, group, surface: dict):
+def _baked_material(original, groups, surface: dict):
+    """The baked copy of `original`: the lightmap UV into the atlas, and per renderer ('EEVEE', 'CYCLES') its node
+    group's Total as emission into a Material Output for that renderer."""
     name = original.name + COPY_SUFFIX
     material = bpy.data.materials.get(name)
     if material is None or material.get(COPY_KEY) != original.name:
@@ -176,21 +179,34 @@ def _baked_material(original, group, surface: dict):
     tree.links.new(scale.outputs["Vector"], atlas_uv.inputs[1])
     tree.links.new(offset.outputs["Vector"], atlas_uv.inputs[2])
     geometry = tree.nodes.new("ShaderNodeNewGeometry")
-    node = tree.nodes.new("ShaderNodeGroup")
-    node.node_tree = group
-    tree.links.new(atlas_uv.outputs["Vector"], node.inputs["UV"])
-    tree.links.new(geometry.outputs["Normal"], node.inputs["Normal"])
-    node.inputs["Roughness"].default_value = surface["roughness"]
-    node.inputs["F0"].default_value = (*surface["f0"], 1.0)
-    albedo = [c * (1 - surface["metallic"]) for c in surface["base_color"]]
-    node.inputs["Albedo"].default_value = (*albedo, 1.0)
-    emission = tree.nodes.new("ShaderNodeEmission")
-    tree.links.new(node.outputs["Total"], emission.inputs["Color"])
-    output = tree.nodes.new("ShaderNodeOutputMaterial")
-    tree.links.new(emission.outputs[0], output.inputs["Surface"])
-    for i, n in enumerate((uv, scale, offset, atlas_uv, geometry, node, emission, output)):
+    for i, n in enumerate((uv, scale, offset, atlas_uv, geometry)):
         n.location = (220 * i, 0)
+    albedo = [c * (1 - surface["metallic"]) for c in surface["base_color"]]
+    for row, (target, group) in enumerate(groups.items()):
+        node = tree.nodes.new("ShaderNodeGroup")
+        node.node_tree = group
+        tree.links.new(atlas_uv.outputs["Vector"], node.inputs["UV"])
+        tree.links.new(geometry.outputs["Normal"], node.inputs["Normal"])
+        node.inputs["Roughness"].default_value = surface["roughness"]
+        node.inputs["F0"].default_value = (*surface["f0"], 1.0)
+        node.inputs["Albedo"].default_value = (*albedo, 1.0)
+        emission = tree.nodes.new("ShaderNodeEmission")
+        tree.links.new(node.outputs["Total"], emission.inputs["Color"])
+        output = tree.nodes.new("ShaderNodeOutputMaterial")
+        output.target = target
+        tree.links.new(emission.outputs[0], output.inputs["Surface"])
+        for i, n in enumerate((node, emission, output)):
+            n.location = (220 * (5 + i), -300 * row)
     return material
+
+
+def baked_group(material, renderer: str = "EEVEE"):
+    """The node group a baked material shades with in `renderer` ('EEVEE' or 'CYCLES'), or None."""
+    output = material_output(material.node_tree, renderer)
+    node = output.inputs["Surface"].links[0].from_node if output and output.inputs["Surface"].is_linked else None
+    color = node.inputs["Color"] if node is not None and "Color" in node.inputs else None
+    group = color.links[0].from_node if color is not None and color.is_linked else None
+    return group.node_tree if group is not None and group.bl_idname == "ShaderNodeGroup" else None
 
 
 def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None) -> dict:
@@ -202,21 +218,24 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
         raise BakeInputError(f"objects {missing} of the plan are not in scene '{scene.name}'; make a new plan")
     layout, path, measured, env_sgs = build_packed_image(out_dir, plan)
     image = _load_image(path, pack_images)
-    groups = {}  # SG count -> node group evaluating that many SGs of the packed image
+    groups = {}  # SG count -> {renderer: node group evaluating that many SGs of the packed image}
 
     def evaluated_count(planned: int) -> int:
         # Textures with another SG count than the plan's (the fixed-SG baseline) are evaluated whole everywhere.
         return min(planned, layout.sg_count) if layout.sg_count == plan.max_sg_count else layout.sg_count
 
-    def group_for(planned: int):
+    def group_for(planned: int) -> dict:
+        """EEVEE's group fits its uniform block; Cycles gets the same shading in fewer, faster nodes."""
         count = evaluated_count(planned)
-        if count not in groups and layout.sh_count:
-            groups[count] = build_node_group(image, layout, env_sgs, f"{GROUP_NAME} (SH L2)")
         if count not in groups:
-            fewer = SGTextureLayout(count, min(count, layout.iwev_count), layout.has_irradiance, layout.atlas_size,
-                                    tiles=layout.tiles)  # the same tiles: only the first `count` SGs are read
-            name = GROUP_NAME if count == layout.sg_count else f"{GROUP_NAME} ({count} SGs)"
-            groups[count] = build_node_group(image, fewer, env_sgs, name)
+            if layout.sh_count:
+                fewer, name = layout, f"{GROUP_NAME} (SH L2)"
+            else:
+                fewer = SGTextureLayout(count, min(count, layout.iwev_count), layout.has_irradiance, layout.atlas_size,
+                                        tiles=layout.tiles)  # the same tiles: only the first `count` SGs are read
+                name = GROUP_NAME if count == layout.sg_count else f"{GROUP_NAME} ({count} SGs)"
+            groups[count] = {"EEVEE": build_node_group(image, fewer, env_sgs, name),
+                             "CYCLES": build_node_group(image, fewer, env_sgs, name + CYCLES_SUFFIX, for_cycles=True)}
         return groups[count]
 
     record = json.loads(scene.get(BAKE_RECORD_KEY, "{}"))
@@ -250,10 +269,11 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
                 for name, size in uniform_bytes.items() if size > UNIFORM_BLOCK_LIMIT]
     seconds = time.perf_counter() - start
     sg_counts = {m.name: evaluated_count(m.sg_count) for o in plan.baked_objects for m in o.materials if m.glossy}
-    most = groups.get(layout.sg_count)
+    most = groups.get(layout.sg_count, {}).get("EEVEE")
     info = {"materials": sorted(baked_materials), "node_group": most.name if most else None,
             "nodes": flattened_node_count(most) if most else 0,  # nested groups expanded, as renderers compile it
-            "node_groups": {g.name: flattened_node_count(g) for g in groups.values()}, "sg_counts": sg_counts,
+            "node_groups": {g.name: flattened_node_count(g) for pair in groups.values() for g in pair.values()},
+            "sg_counts": sg_counts,
             "sg_evaluations_saved": None if layout.sh_count else
             round(1 - sum(sg_counts.values()) / max(layout.sg_count * len(sg_counts), 1), 3),
             "encoder": "sh_l2" if layout.sh_count else "sg",

@@ -106,15 +106,20 @@ class NodeOps:
       nested group), so Blender cannot fold it, and linked from there to every use (4 bytes per constant and tree
       instance: cheaper in build time than passing each constant into every instance).
     Without `linked_constants` (Cycles-only trees, e.g. the hair reference), constants are socket values.
+    With `vector_nodes` (Cycles-only too) vector arithmetic is one Vector Math node per operation and constants are
+    socket values: Cycles' SVM runs a node per instruction and needs no uniforms, so this graph is the faster one
+    there (docs/design-additions.md section 15).
     """
 
-    def __init__(self, tree, subgroups=None, *, anchor=None, group_input=None, linked_constants=None):
+    def __init__(self, tree, subgroups=None, *, anchor=None, group_input=None, linked_constants=None,
+                 vector_nodes=False):
         self.tree = tree
+        self.vector_nodes = vector_nodes
         self.count = 0
         self.gate = None  # a non-negative value later texture lookups are made to depend on
         self.subgroups = {} if subgroups is None else subgroups  # call name -> (nested group, takes a 'zero')
-        self.linked_constants = (anchor is not None or group_input is not None) if linked_constants is None \
-            else linked_constants
+        self.linked_constants = False if vector_nodes else (anchor is not None or group_input is not None) \
+            if linked_constants is None else linked_constants
         self.anchor = anchor  # top level: a scalar socket that varies per pixel (the zero is made from it)
         self.group_input = group_input  # nested group: its Group Input node (its 'zero' arrives there)
         self._constants = {}  # value -> socket
@@ -245,7 +250,7 @@ class NodeOps:
             group.interface.new_socket(key, in_out="INPUT", socket_type=socket_type(value))
         group_inputs = self._node_in(group, "NodeGroupInput")
         ops = NodeOps(group, self.subgroups, group_input=group_inputs if self.linked_constants else None,
-                      linked_constants=self.linked_constants)
+                      linked_constants=self.linked_constants, vector_nodes=self.vector_nodes)
         ops.count = 1
         outputs = function(ops, **{key: group_inputs.outputs[key] for key in inputs})
         for key, value in outputs.items():
@@ -336,41 +341,72 @@ class NodeOps:
     def power(self, a, exponent):
         return self._math("POWER", a, float(exponent))
 
-    # -- vector operations, component by component ---------------------------------------------------------
+    # -- vector operations: component by component, or one Vector Math node each with `vector_nodes` ------------
+
+    def _vector_node(self, operation, *values, output=0, scale=None):
+        """A Vector Math node for `operation` when this backend makes them and a value is not all numbers."""
+        if not self.vector_nodes or all(isinstance(v, tuple) and all(map(_is_number, v)) for v in values):
+            return None
+        node = self._node("ShaderNodeVectorMath", operation=operation)
+        for socket, value in zip(node.inputs, values):
+            self._feed(socket, value)
+        if scale is not None:
+            self._feed(node.inputs["Scale"], scale)
+        return node.outputs[output]
 
     def dot(self, a, b):
+        node = self._vector_node("DOT_PRODUCT", a, b, output="Value")
+        if node is not None:
+            return node
         total = 0.0
         for x, y in zip(self._vec(a), self._vec(b)):
             total = self.muladd(x, y, total)
         return total
 
     def cross(self, a, b):
+        node = self._vector_node("CROSS_PRODUCT", a, b)
+        if node is not None:
+            return node
         (ax, ay, az), (bx, by, bz) = self._vec(a), self._vec(b)
         return Vec(self.muladd(self.mul(p, q), -1.0, self.mul(r, s))
                    for r, s, p, q in ((ay, bz, az, by), (az, bx, ax, bz), (ax, by, ay, bx)))
 
     def normalize(self, a):
+        node = self._vector_node("NORMALIZE", a)
+        if node is not None:
+            return node
         a = self._vec(a)
         inverse_length = self.div(1.0, self.sqrt(self.dot(a, a)))  # 0 for the zero vector, as Blender's node
         return Vec(self.mul(x, inverse_length) for x in a)
 
+    def _componentwise(self, operation, scalar, a, b):
+        node = self._vector_node(operation, a, b)
+        if node is not None:
+            return node
+        return Vec(scalar(x, y) for x, y in zip(self._vec(a), self._vec(b)))
+
     def vadd(self, a, b):
-        return Vec(self.add(x, y) for x, y in zip(self._vec(a), self._vec(b)))
+        return self._componentwise("ADD", self.add, a, b)
 
     def vsub(self, a, b):
-        return Vec(self.sub(x, y) for x, y in zip(self._vec(a), self._vec(b)))
+        return self._componentwise("SUBTRACT", self.sub, a, b)
 
     def vmul(self, a, b):  # componentwise
-        return Vec(self.mul(x, y) for x, y in zip(self._vec(a), self._vec(b)))
+        return self._componentwise("MULTIPLY", self.mul, a, b)
 
     def vscale(self, a, s):
+        if _is_number(s) and s == 1.0:
+            return a
+        node = self._vector_node("SCALE", a, scale=s) if not (_is_number(s) and isinstance(a, tuple)) else None
+        if node is not None:
+            return node
         return Vec(self.mul(x, s) for x in self._vec(a))
 
     def vmax(self, a, b):
-        return Vec(self.maximum(x, y) for x, y in zip(self._vec(a), self._vec(b)))
+        return self._componentwise("MAXIMUM", self.maximum, a, b)
 
     def vmin(self, a, b):
-        return Vec(self.minimum(x, y) for x, y in zip(self._vec(a), self._vec(b)))
+        return self._componentwise("MINIMUM", self.minimum, a, b)
 
 
 def flattened_node_count(tree) -> int:
@@ -402,9 +438,10 @@ def closest_texture(tree, image):
     return node
 
 
-def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GROUP_NAME):
+def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GROUP_NAME, *, for_cycles=False):
     """Create or update the node group and its nested groups (`<name> / ...`); returns it. `image` is the packed SG
-    image (Non-Color, half float)."""
+    image (Non-Color, half float). The group computes the same in both renderers; `for_cycles` builds it with
+    Vector Math nodes and constant sockets (faster in Cycles, but beyond EEVEE's uniform block at a few SGs)."""
     group = new_or_cleared_group(name)
     sockets = [("UV", "INPUT", "NodeSocketVector"), ("Normal", "INPUT", "NodeSocketVector"),
                ("Roughness", "INPUT", "NodeSocketFloat"), ("F0", "INPUT", "NodeSocketColor"),
@@ -417,7 +454,7 @@ def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GRO
     geometry = NodeOps._node_in(group, "ShaderNodeNewGeometry")
     position = NodeOps._node_in(group, "ShaderNodeSeparateXYZ")
     group.links.new(geometry.outputs["Position"], position.inputs[0])
-    ops = NodeOps(group, anchor=position.outputs["X"])
+    ops = NodeOps(group, vector_nodes=True) if for_cycles else NodeOps(group, anchor=position.outputs["X"])
     ops.count = 3
     # The material may leave these unlinked (constants): laundered so nothing downstream folds into uniforms.
     uv, normal, f0, albedo = (ops.launder(inputs.outputs[key]) for key in ("UV", "Normal", "F0", "Albedo"))
@@ -425,7 +462,8 @@ def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GRO
     columns, rows = layout.grid
     width, height = (float(v) for v in layout.atlas_size)
     # Shared by every tile: the four texel centres around UV (clamped inside the atlas) and their weights.
-    texel_x, texel_y = ops.sub(ops.mul(uv[0], width), 0.5), ops.sub(ops.mul(uv[1], height), 0.5)
+    u, v, _ = ops._vec(uv)
+    texel_x, texel_y = ops.sub(ops.mul(u, width), 0.5), ops.sub(ops.mul(v, height), 0.5)
     base_x, base_y = ops.floor(texel_x), ops.floor(texel_y)
     tx, ty = ops.sub(texel_x, base_x), ops.sub(texel_y, base_y)
     corner_inputs = {}
@@ -505,6 +543,19 @@ def _node_table(tree, tables):
             nodes[pointer] = (node.bl_idname, getattr(node, "node_tree", None), identity, inputs)
         tables[key] = (nodes, group_output, by_pointer)
     return tables[key]
+
+
+def material_output(tree, renderer: str):
+    """The Material Output node `renderer` ('EEVEE' or 'CYCLES') uses, as Blender picks it
+    (ntreeShaderOutputNode): one for that renderer before one for all, the active one first among equals."""
+    best = None
+    for node in tree.nodes:
+        if node.bl_idname != "ShaderNodeOutputMaterial" or node.target not in ("ALL", renderer):
+            continue
+        if best is None or (node.target == renderer and best.target == "ALL") or \
+                (node.target == best.target and node.is_active_output and not best.is_active_output):
+            best = node
+    return best
 
 
 def eevee_uniform_bytes(material) -> dict:
@@ -599,13 +650,13 @@ def eevee_uniform_bytes(material) -> dict:
                     counts[_UNIFORM_FLOATS[socket_type_name]] += 1  # an unlinked texture Vector is the UV map
 
     tree = material.node_tree
-    nodes, _, by_pointer = _node_table(tree, tables)
-    for pointer, (kind, _, _, inputs) in nodes.items():
-        if kind == "ShaderNodeOutputMaterial" and by_pointer[pointer].is_active_output:
-            for identifier, _, enabled, feed in inputs:
-                found = source(tree, feed, ()) if enabled else None
-                if found is not None:
-                    visit(*found)
+    nodes, _, _ = _node_table(tree, tables)
+    output = material_output(tree, "EEVEE")
+    if output is not None:
+        for identifier, _, enabled, feed in nodes[output.as_pointer()][3]:
+            found = source(tree, feed, ()) if enabled else None
+            if found is not None:
+                visit(*found)
     floats, vec3, vec4 = counts[1] + 1, counts[3], counts[4]  # + the cryptomatte hash
     size = 16 * (vec4 + vec3) + 4 * max(0, floats - vec3)
     size = (size + 15) // 16 * 16

@@ -6,8 +6,9 @@ import bpy  # noqa: I001
 import bmesh
 import numpy as np
 import pytest
+from mathutils import Vector
 
-from blender_addon.apply import BAKE_RECORD_KEY, IMAGE_NAME, apply_stage, remove_bake
+from blender_addon.apply import BAKE_RECORD_KEY, CYCLES_SUFFIX, IMAGE_NAME, apply_stage, baked_group, remove_bake
 from blender_addon.capture import capture
 from blender_addon.render import quiet_stdout, render_stage
 from blender_addon.scene_analysis import active_scene, build_plan
@@ -55,9 +56,10 @@ def _parity_scene(group, width, height):
     return scene, node
 
 
-def _parity_worst(tmp_path, layout, cells, env_sgs, roughnesses, angles_deg) -> float:
-    """Worst relative difference between a Cycles render of the node group and its numpy reference, over the
-    parameter cells (h, w) of every tile and the given roughnesses and normal angles."""
+def _parity_worst(tmp_path, layout, cells, env_sgs, roughnesses, angles_deg, for_cycles=False) -> float:
+    """Worst relative difference between a Cycles render of the node group (EEVEE's graph, or with `for_cycles`
+    the one baked materials give Cycles) and its numpy reference, over the parameter cells (h, w) of every tile
+    and the given roughnesses and normal angles."""
     h, w = next(iter(cells.values())).shape[:2]
     # Every parameter cell spans 2 x 2 identical texels and each pixel centre hits the middle of a cell, so the
     # node-side bilinear filter returns the cell's exact values despite Cycles' tiny pixel-filter jitter.
@@ -67,7 +69,8 @@ def _parity_worst(tmp_path, layout, cells, env_sgs, roughnesses, angles_deg) -> 
     stored, _, _ = read_exr(path, channels=["R", "G", "B", "A"])
     image = bpy.data.images.load(str(path))
     image.colorspace_settings.name, image.alpha_mode = "Non-Color", "CHANNEL_PACKED"
-    group = build_node_group(image, layout, env_sgs, name=f"SG Lightfield parity {layout.sg_count} {layout.sh_count}")
+    group = build_node_group(image, layout, env_sgs, name=f"SG Lightfield parity {layout.sg_count} {layout.sh_count}",
+                             for_cycles=for_cycles)
     scene, node = _parity_scene(group, w, h)
     columns, rows = layout.grid
 
@@ -98,7 +101,8 @@ def _parity_worst(tmp_path, layout, cells, env_sgs, roughnesses, angles_deg) -> 
     return worst
 
 
-def test_node_group_matches_its_numpy_reference_in_cycles(tmp_path):
+@pytest.mark.parametrize("for_cycles", (False, True), ids=("eevee_graph", "cycles_graph"))
+def test_node_group_matches_its_numpy_reference_in_cycles(tmp_path, for_cycles):
     """Over a grid that includes the extremes: sharpness 1e-4..1e4, amplitudes 0..1e4, roughness 0 (floored)
     to 1, grazing n.v, with the environment term (global env SGs x W_E from IWEV SGs, clipped to [0, 1]);
     the stored (half-float) parameters feed the numpy reference."""
@@ -117,10 +121,12 @@ def test_node_group_matches_its_numpy_reference_in_cycles(tmp_path):
     cells[("irradiance", 0)] = np.concatenate([rng.uniform(0, 3, (h, w, 3)), np.ones((h, w, 1))], -1)
     cells[("iwev", 0)] = np.concatenate([rng.normal(size=(h, w, 3)), rng.uniform(0, 1, (h, w, 1))], -1)
     cells[("iwev_amp", 0)] = np.concatenate([rng.uniform(0, 1.2, (h, w, 3)), np.zeros((h, w, 1))], -1)
-    assert _parity_worst(tmp_path, layout, cells, env_sgs, (0.0, 0.2, 0.6, 1.0), (0.0, 60.0, 89.0)) < 1e-3
+    assert _parity_worst(tmp_path, layout, cells, env_sgs, (0.0, 0.2, 0.6, 1.0), (0.0, 60.0, 89.0),
+                         for_cycles) < 1e-3
 
 
-def test_sixteen_sgs_with_environment_visibility_fit_in_cycles_svm_stack(tmp_path):
+@pytest.mark.parametrize("for_cycles", (False, True), ids=("eevee_graph", "cycles_graph"))
+def test_sixteen_sgs_with_environment_visibility_fit_in_cycles_svm_stack(tmp_path, for_cycles):
     """The largest group the presets make (16 SGs, 16 IWEV SGs, 16 environment SGs) compiles in Cycles' 255-slot SVM
     stack and still equals its numpy reference (without the lookup barriers: "out of SVM stack space", black)."""
     n, iwev, h, w = 16, 16, 4, 4
@@ -128,10 +134,11 @@ def test_sixteen_sgs_with_environment_visibility_fit_in_cycles_svm_stack(tmp_pat
     layout = SGTextureLayout(n, iwev_count=iwev, has_irradiance=True, atlas_size=(2 * w, 2 * h))
     env_sgs = _random_env_sgs(rng)
     cells = _largest_groups_cells(n, iwev, h, w, rng)
-    assert _parity_worst(tmp_path, layout, cells, env_sgs, (0.3,), (30.0,)) < 1e-3
+    assert _parity_worst(tmp_path, layout, cells, env_sgs, (0.3,), (30.0,), for_cycles) < 1e-3
 
 
-def test_sh_node_group_matches_its_numpy_reference_in_cycles(tmp_path):
+@pytest.mark.parametrize("for_cycles", (False, True), ids=("eevee_graph", "cycles_graph"))
+def test_sh_node_group_matches_its_numpy_reference_in_cycles(tmp_path, for_cycles):
     """The SH L2 baseline's variant of the group: signed coefficients up to 1e3, roughness 0 to 1, grazing."""
     h, w = 4, 4
     rng = np.random.default_rng(1)
@@ -140,7 +147,7 @@ def test_sh_node_group_matches_its_numpy_reference_in_cycles(tmp_path):
              for j in range(9)}
     cells[("sh", 0)][0, 0, :3] = 1e3
     cells[("irradiance", 0)] = np.concatenate([rng.uniform(0, 3, (h, w, 3)), np.ones((h, w, 1))], -1)
-    assert _parity_worst(tmp_path, layout, cells, (), (0.0, 0.5, 1.0), (0.0, 89.0)) < 1e-3
+    assert _parity_worst(tmp_path, layout, cells, (), (0.0, 0.5, 1.0), (0.0, 89.0), for_cycles) < 1e-3
 
 
 def _material_fingerprint(mat):
@@ -265,7 +272,7 @@ def test_eevee_renders_the_baked_scene_like_cycles_evaluates_it(tmp_path):
     cycles, _, _ = read_exr(tmp_path / "CYCLES_0.exr", channels=["R", "G", "B"])
     difference = np.abs(tonemap(eevee) - tonemap(cycles))
     assert tonemap(cycles).max() > 0.3  # the picture is not empty
-    assert difference.mean() < 0.005, difference.mean()  # same nodes, two engines (measured 4e-4)
+    assert difference.mean() < 0.005, difference.mean()  # each engine's graph of one shading (measured 4e-4)
     remove_bake(scene)
 
 
@@ -368,12 +375,16 @@ def test_each_material_gets_the_sg_count_its_roughness_needs(tmp_path):
     assert np.any(amplitude[on_smooth][:, counts["Rougher"]:] > 0)
 
     result = apply_stage(scene, plan, tmp_path)
-    smooth_group = ball.material_slots[0].material.node_tree.nodes["Group"].node_tree
-    rougher_group = other.material_slots[0].material.node_tree.nodes["Group"].node_tree
+    smooth_group = baked_group(ball.material_slots[0].material, "EEVEE")
+    rougher_group = baked_group(other.material_slots[0].material, "EEVEE")
     assert smooth_group.name == GROUP_NAME and rougher_group.name == f"{GROUP_NAME} ({counts['Rougher']} SGs)"
     assert len(rougher_group.nodes) < len(smooth_group.nodes)
+    cycles_groups = [baked_group(o.material_slots[0].material, "CYCLES") for o in (ball, other)]
+    assert [g.name for g in cycles_groups] == [smooth_group.name + CYCLES_SUFFIX, rougher_group.name + CYCLES_SUFFIX]
     assert result["sg_counts"] == counts and result["node_groups"] == {  # nested groups expanded in the counts
-        smooth_group.name: flattened_node_count(smooth_group), rougher_group.name: flattened_node_count(rougher_group)}
+        g.name: flattened_node_count(g) for g in (smooth_group, rougher_group, *cycles_groups)}
+    assert all(flattened_node_count(c) < flattened_node_count(e)  # Vector Math nodes: fewer for Cycles' SVM
+               for c, e in zip(cycles_groups, (smooth_group, rougher_group)))
     assert result["nodes"] > len(smooth_group.nodes) + 100 * counts["Smooth"]  # each glossy SG group expanded
     assert result["sg_evaluations_saved"] == pytest.approx(1 - sum(counts.values()) / (2 * counts["Smooth"]), abs=1e-3)
     rendered = _render_small(scene, tmp_path / "baked.exr", (0.75, -5, 0))  # both groups shade to finite colours
@@ -404,14 +415,15 @@ def test_sh_baseline_bakes_applies_and_shades_through_its_own_group(tmp_path):
     assert is_sh_texture(tmp_path / "sg_lightfield.exr") and trained.bytes_per_texel == 54
     assert np.isfinite(trained.metrics["lightfield"]["rmse"])
     info = apply_stage(scene, plan, tmp_path)
-    group = ball.material_slots[0].material.node_tree.nodes["Group"].node_tree
+    group = baked_group(ball.material_slots[0].material)
     assert group.name == f"{GROUP_NAME} (SH L2)" and info["encoder"] == "sh_l2" and info["layout"]["sh_count"] == 9
+    assert baked_group(ball.material_slots[0].material, "CYCLES").name == group.name + CYCLES_SUFFIX
     assert info["irradiance_from_sgs_rel_error_median"] < 0.1
     rendered = _render_small(scene, tmp_path / "baked.exr", (0, -5, 0))
     assert np.all(np.isfinite(rendered)) and rendered[6:12, 13:19].mean() > 0.01  # the lit ball
-    group_name = group.name
+    group_names = (group.name, group.name + CYCLES_SUFFIX)
     remove_bake(scene)
-    assert group_name not in bpy.data.node_groups
+    assert not any(name in bpy.data.node_groups for name in group_names)
 
 
 
@@ -567,3 +579,29 @@ def test_eevee_compiles_the_largest_group_and_its_uniform_block_is_what_we_count
     assert np.abs(tonemap(eevee[left]) - tonemap(cycles[left])).mean() < 0.01  # same nodes, two engines
     for mat in (baked, overflowing):
         bpy.data.materials.remove(mat)
+
+
+def test_evaluation_cameras_see_the_baked_objects_from_inside_a_closed_room():
+    """The views orbiting the baked objects stood outside room's walls and rendered black (half of every room
+    score was a black frame); now each looks at the baked objects' centre with no other surface in between."""
+    from blender_addon.demo_scenes import build_demo_scene
+    from blender_addon.evaluate import _view_cameras
+
+    scene = build_demo_scene("demo:room")
+    plan = build_plan(scene, BakeSettings.from_preset("draft"))
+    corners = [scene.objects[o.name].matrix_world @ Vector(c) for o in plan.baked_objects
+               for c in scene.objects[o.name].bound_box]
+    centre = Vector([(min(c[i] for c in corners) + max(c[i] for c in corners)) / 2 for i in range(3)])
+    cameras = _view_cameras(scene, plan, 3)
+    assert [made for _, made in cameras] == [False, True, True]
+    with active_scene(scene) as depsgraph:
+        for camera, _ in cameras[1:]:
+            to_centre = centre - camera.location
+            hit, _, _, _, obj, _ = scene.ray_cast(depsgraph, camera.location, to_centre.normalized(),
+                                                  distance=to_centre.length)
+            assert not hit or obj.original.name in {o.name for o in plan.baked_objects}, obj.name
+    for camera, made in cameras:
+        if made:
+            data = camera.data
+            bpy.data.objects.remove(camera)
+            bpy.data.cameras.remove(data)
