@@ -47,6 +47,27 @@ except ImportError:  # bpy as a module with the repository on sys.path
     from shaders.image_metrics import flip, heat, psnr, rmse, tonemap
 
 
+def inside_line_of_sight(scene, centre, location, see_through=()):
+    """`location`, or 90 % of the way to the first surface the line of sight from `centre` towards it meets
+    (objects named in `see_through` and objects hidden in renders let it pass): an orbit camera around the baked
+    objects of a closed room would otherwise film the back of a wall."""
+    offset = location - centre
+    distance, direction = offset.length, offset.normalized()
+    origin, travelled = centre.copy(), 0.0
+    with active_scene(scene) as depsgraph:
+        while travelled < distance:
+            hit, position, _, _, obj, _ = scene.ray_cast(depsgraph, origin, direction, distance=distance - travelled)
+            if not hit:
+                break
+            travelled = (position - centre).length
+            original = obj.original if obj is not None else None
+            if original is not None and original.name not in see_through and not original.hide_render:
+                return centre + direction * (0.9 * travelled)
+            origin = position + direction * 1e-4 * distance
+            travelled += 1e-4 * distance
+    return location
+
+
 def _view_cameras(scene, plan, count):
     """The scene camera, then cameras orbiting the baked objects' bounding box, looking at its centre."""
     cameras = []
@@ -61,12 +82,14 @@ def _view_cameras(scene, plan, count):
     lo = Vector(np.min(np.array(points), axis=0))
     hi = Vector(np.max(np.array(points), axis=0))
     centre, radius = (lo + hi) / 2, max((hi - lo).length / 2, 1e-3)
+    baked = {o.name for o in plan.baked_objects}
     for k in range(count - len(cameras)):
         azimuth = math.radians(35 + 110 * k)
         data = bpy.data.cameras.new("SGLF evaluate")
         data.lens = 30
         camera = bpy.data.objects.new("SGLF evaluate", data)
-        camera.location = centre + radius * 2.2 * Vector((math.cos(azimuth), -math.sin(azimuth), 0.55))
+        orbit = centre + radius * 2.2 * Vector((math.cos(azimuth), -math.sin(azimuth), 0.55))
+        camera.location = inside_line_of_sight(scene, centre, orbit, baked)
         camera.rotation_euler = (centre - camera.location).to_track_quat("-Z", "Y").to_euler()
         scene.collection.objects.link(camera)
         cameras.append((camera, True))
