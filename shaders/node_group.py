@@ -344,8 +344,10 @@ class NodeOps:
     # -- vector operations: component by component, or one Vector Math node each with `vector_nodes` ------------
 
     def _vector_node(self, operation, *values, output=0, scale=None):
-        """A Vector Math node for `operation` when this backend makes them and a value is not all numbers."""
-        if not self.vector_nodes or all(isinstance(v, tuple) and all(map(_is_number, v)) for v in values):
+        """A Vector Math node for `operation` when this backend makes them and an input is not all numbers."""
+        numbers = all(isinstance(v, tuple) and all(map(_is_number, v)) for v in values) and \
+            (scale is None or _is_number(scale))
+        if not self.vector_nodes or numbers:
             return None
         node = self._node("ShaderNodeVectorMath", operation=operation)
         for socket, value in zip(node.inputs, values):
@@ -397,7 +399,7 @@ class NodeOps:
     def vscale(self, a, s):
         if _is_number(s) and s == 1.0:
             return a
-        node = self._vector_node("SCALE", a, scale=s) if not (_is_number(s) and isinstance(a, tuple)) else None
+        node = self._vector_node("SCALE", a, scale=s)
         if node is not None:
             return node
         return Vec(self.mul(x, s) for x in self._vec(a))
@@ -528,10 +530,9 @@ def _node_table(tree, tables):
             if link.is_valid and not link.is_muted:
                 feeds[(link.to_node.as_pointer(), link.to_socket.identifier)] = (link.from_node.as_pointer(),
                                                                                  link.from_socket.identifier)
-        nodes, group_output, by_pointer = {}, None, {}
+        nodes, group_output = {}, None
         for node in tree.nodes:
             pointer = node.as_pointer()
-            by_pointer[pointer] = node
             identity = True
             if node.bl_idname == "ShaderNodeTexImage":
                 m = node.texture_mapping
@@ -541,7 +542,7 @@ def _node_table(tree, tables):
                 group_output = pointer
             inputs = [(s.identifier, s.type, s.enabled, feeds.get((pointer, s.identifier))) for s in node.inputs]
             nodes[pointer] = (node.bl_idname, getattr(node, "node_tree", None), identity, inputs)
-        tables[key] = (nodes, group_output, by_pointer)
+        tables[key] = (nodes, group_output)
     return tables[key]
 
 
@@ -578,7 +579,7 @@ def eevee_uniform_bytes(material) -> dict:
         """(tree, node pointer, ctx) of the node computing what a link `feed` = (node, output identifier) carries,
         through reroutes and group boundaries; None when it ends at an unlinked group input."""
         while feed is not None:
-            nodes, _, _ = _node_table(tree, tables)
+            nodes, _ = _node_table(tree, tables)
             pointer, identifier = feed
             kind, nested, _, inputs = nodes[pointer]
             if kind == "NodeReroute":
@@ -592,7 +593,7 @@ def eevee_uniform_bytes(material) -> dict:
             elif kind == "ShaderNodeGroup":
                 if nested is None:
                     return None
-                nested_nodes, output, _ = _node_table(nested, tables)
+                nested_nodes, output = _node_table(nested, tables)
                 if output is None:
                     return None
                 ctx = ctx + ((tree, pointer),)
@@ -650,7 +651,7 @@ def eevee_uniform_bytes(material) -> dict:
                     counts[_UNIFORM_FLOATS[socket_type_name]] += 1  # an unlinked texture Vector is the UV map
 
     tree = material.node_tree
-    nodes, _, _ = _node_table(tree, tables)
+    nodes, _ = _node_table(tree, tables)
     output = material_output(tree, "EEVEE")
     if output is not None:
         for identifier, _, enabled, feed in nodes[output.as_pointer()][3]:
