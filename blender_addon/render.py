@@ -128,6 +128,19 @@ def render_still(scene, path) -> np.ndarray:
     return pixels
 
 
+@contextlib.contextmanager
+def _compiler_scratch():
+    """Blender 5.0's cycles.osl compiles an internal script to a NamedTemporaryFile(delete=False) .oso that it never
+    removes: one 15 KB file in the temp directory per bake. Compile inside a directory that is removed after."""
+    previous = tempfile.tempdir
+    with tempfile.TemporaryDirectory(prefix="sglf-oslc-") as scratch:
+        tempfile.tempdir = scratch
+        try:
+            yield
+        finally:
+            tempfile.tempdir = previous
+
+
 class _RenderScene:
     """A temporary scene that sees the user's render-visible objects through an atlas camera."""
 
@@ -264,7 +277,8 @@ class _RenderScene:
         data.custom_shader = text
         data.clip_start, data.clip_end = 1e-6, 1e9
         messages = []
-        ok = cycles.osl.update_custom_camera_shader(data, lambda kind, message: messages.append(message))
+        with _compiler_scratch():
+            ok = cycles.osl.update_custom_camera_shader(data, lambda kind, message: messages.append(message))
         if not ok:
             raise BakeInputError("the light-field camera shader did not compile: " + "; ".join(messages))
         camera = self._new(bpy.data.objects, f"{TEMP_PREFIX} camera", data)

@@ -1,6 +1,10 @@
 """Test set-up shared by all tests: bpy runs as a module with its user resources isolated."""
+import atexit
 import os
+import shutil
 import tempfile
 
 # Before anything imports bpy: never touch the developer's own Blender configuration.
-os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="sglf-blender-user-"))
+if "BLENDER_USER_RESOURCES" not in os.environ:
+    os.environ["BLENDER_USER_RESOURCES"] = tempfile.mkdtemp(prefix="sglf-blender-user-")
+    atexit.register(shutil.rmtree, os.environ["BLENDER_USER_RESOURCES"], ignore_errors=True)

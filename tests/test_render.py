@@ -1,6 +1,7 @@
 """Render stage with real Cycles renders (small sizes, CPU): the custom OSL camera, lamps, IWEV, resume."""
 import bpy  # noqa: I001
 import bmesh
+import tempfile
 import numpy as np
 import pytest
 from mathutils import Matrix
@@ -98,6 +99,18 @@ def test_energy_inside_an_emitting_sphere_and_nothing_below_the_horizon(tmp_path
     assert np.all(images[none] == 0.0)
     partial = ~full & ~none  # straddling the horizon: the cut keeps the same fraction (noisy at 4 spp)
     assert images[partial].mean() == pytest.approx(radiance * fraction[partial].mean(), rel=0.05)
+
+
+def test_a_bake_leaves_nothing_in_the_temp_directory(tmp_path, monkeypatch):
+    """Cycles' OSL compiler leaves the compiled camera shader (.oso) in the temp directory; the stage must not."""
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(temp))
+    scene = scene_with(mesh_object("Disc", lambda bm: bmesh.ops.create_grid(bm, x_segments=1, y_segments=1, size=0.5),
+                                   material("glossy", 0.2)))
+    _world(scene, (0.5, 0.5, 0.5))
+    _bake(scene, tmp_path / "bake", resolution=8, samples=1, density=2.0)
+    assert list(temp.iterdir()) == []
 
 
 def test_midpoints_on_a_curved_surface_lie_on_it_and_see_what_its_texels_see(tmp_path):
