@@ -32,7 +32,7 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.sg_shading import SH_L2_BAND, NumpyOps, encode_sharpness, sh_l2_basis
     from ..shaders.sg_textures import (is_sh_texture, pack_tiles, read_sg_texture, read_sh_texture, scatter_dilated,
                                    sg_texture_path)
-    from ..shaders.texel_maps import channels, read_texel_maps
+    from ..shaders.texel_maps import channels, read_texel_maps, smooth_over_texels, texels_of_objects
     from .capture import LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, remove_lightmap_uvs
     from .scene_analysis import BAKED_COPY_KEY, principled_surface
 except ImportError:  # bpy as a module with the repository on sys.path
@@ -49,7 +49,7 @@ except ImportError:  # bpy as a module with the repository on sys.path
     from shaders.sg_shading import SH_L2_BAND, NumpyOps, encode_sharpness, sh_l2_basis
     from shaders.sg_textures import (is_sh_texture, pack_tiles, read_sg_texture, read_sh_texture, scatter_dilated,
                                    sg_texture_path)
-    from shaders.texel_maps import channels, read_texel_maps
+    from shaders.texel_maps import channels, read_texel_maps, smooth_over_texels, texels_of_objects
 
 BAKE_RECORD_KEY = "sglf_bake"  # on the scene: JSON {object: {slot index: original material}}
 COPY_SUFFIX = " (SG bake)"
@@ -71,14 +71,15 @@ def irradiance_from_lightfields(images: np.ndarray, normals: np.ndarray) -> np.n
 
 def build_packed_image(out_dir: Path, plan) -> tuple[SGTextureLayout, Path, dict]:
     """Pack SG + irradiance tiles into DIR/sg_packed.exr (half RGBA); returns layout, path and measurements."""
-    atlas, _ = read_texel_maps(out_dir, plan.stage_hash("capture"))
+    atlas, texel_info = read_texel_maps(out_dir, plan.stage_hash("capture"))
     shape = atlas.shape[:2]
     lightfield = sg_texture_path(out_dir, "lightfield")
-    sh = is_sh_texture(lightfield)  # the benchmark's SH L2 baseline instead of SGs
+    encoded = bool(plan.sg_objects)  # else only irradiance lightmaps: no SG texture
+    sh = encoded and is_sh_texture(lightfield)  # the benchmark's SH L2 baseline instead of SGs
+    n = 0
     if sh:
         coefficients, _ = read_sh_texture(lightfield, plan.stage_hash("train"))
-        n = 0
-    else:
+    elif encoded:
         axis, sharpness, amplitude, meta = read_sg_texture(lightfield, plan.stage_hash("train"))
         n = int(meta["sg_count"])
     texels, images = read_images(out_dir / "lightfield", plan.stage_hash("render"))
@@ -89,16 +90,22 @@ def build_packed_image(out_dir: Path, plan) -> tuple[SGTextureLayout, Path, dict
         if not np.array_equal(sky_texels, texels):
             raise BakeInputError(f"{out_dir}: env_occluded and lightfield texels differ; render again")
         irradiance = irradiance + irradiance_from_lightfields(sky, shading)
-    r, c = texels[:, 0], texels[:, 1]
+    lightmap = smooth_over_texels(atlas, texels, irradiance)  # the encodings below are measured against the exact one
+    # How far the encoding's own irradiance is from the exact one, on the texels that have an encoding.
+    with_sgs = texels_of_objects(atlas, texel_info, texels, plan.sg_objects)
+    r, c = texels[with_sgs, 0], texels[with_sgs, 1]
     if sh:  # Funk-Hecke with the clamped cosine: band l scaled by its Legendre coefficient
-        basis = np.stack(np.broadcast_arrays(*sh_l2_basis(NumpyOps(), shading)), -1)  # (T, 9)
+        basis = np.stack(np.broadcast_arrays(*sh_l2_basis(NumpyOps(), shading[with_sgs])), -1)  # (T, 9)
         cosine_bands = np.array([CLAMPED_COSINE_LEGENDRE[band] for band in SH_L2_BAND])
         from_encoding = np.einsum("tk,tkc->tc", basis * cosine_bands, coefficients[r, c].astype(np.float64))
-    else:
+    elif encoded:
         from_encoding = sg_irradiance(axis[r, c].astype(np.float64), sharpness[r, c].astype(np.float64),
-                                      amplitude[r, c].astype(np.float64), shading[:, None, :]).sum(axis=1)
-    lit = irradiance.sum(axis=1) > 1e-6 * max(irradiance.sum(axis=1).max(), 1e-30)
-    rel = np.abs(from_encoding - irradiance).sum(axis=1)[lit] / irradiance.sum(axis=1)[lit]
+                                      amplitude[r, c].astype(np.float64), shading[with_sgs, None, :]).sum(axis=1)
+    else:
+        from_encoding = np.zeros((0, irradiance.shape[1]))
+    exact = irradiance[with_sgs].sum(axis=1)
+    lit = exact > 1e-6 * max(exact.max(initial=0.0), 1e-30)
+    rel = np.abs(from_encoding - irradiance[with_sgs]).sum(axis=1)[lit] / exact[lit]
     iwev_count, env_sgs, tiles = 0, [], {}
     if plan.environment.iwev:
         w_axis, w_sharpness, w_amplitude, w_meta = read_sg_texture(sg_texture_path(out_dir, "env_visibility"),
@@ -123,7 +130,7 @@ def build_packed_image(out_dir: Path, plan) -> tuple[SGTextureLayout, Path, dict
     for j in range(n):
         tiles[("sg", j)] = np.concatenate([axis[..., j, :], encode_sharpness(sharpness[..., j])[..., None]], -1)
         tiles[("amp", j)] = np.concatenate([amplitude[..., j, :], np.zeros(shape + (1,))], -1)
-    tiles[("irradiance", 0)] = np.concatenate([scatter_dilated(shape, texels, irradiance), np.ones(shape + (1,))], -1)
+    tiles[("irradiance", 0)] = np.concatenate([scatter_dilated(shape, texels, lightmap), np.ones(shape + (1,))], -1)
     path = write_exr(out_dir / PACKED_FILE, pack_tiles(layout, tiles, shape), precision="half",
                      channels=["R", "G", "B", "A"], metadata={"plan_hash": plan.stage_hash("train"),
                                                               "layout": json.dumps(layout.to_dict())})
@@ -218,17 +225,21 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
         raise BakeInputError(f"objects {missing} of the plan are not in scene '{scene.name}'; make a new plan")
     layout, path, measured, env_sgs = build_packed_image(out_dir, plan)
     image = _load_image(path, pack_images)
-    groups = {}  # SG count -> {renderer: node group evaluating that many SGs of the packed image}
+    groups = {}  # SG count (None: irradiance only) -> {renderer: node group evaluating the packed image}
 
     def evaluated_count(planned: int) -> int:
         # Textures with another SG count than the plan's (the fixed-SG baseline) are evaluated whole everywhere.
         return min(planned, layout.sg_count) if layout.sg_count == plan.max_sg_count else layout.sg_count
 
     def group_for(planned: int) -> dict:
-        """EEVEE's group fits its uniform block; Cycles gets the same shading in fewer, faster nodes."""
-        count = evaluated_count(planned)
+        """EEVEE's group fits its uniform block; Cycles gets the same shading in fewer, faster nodes. A planned
+        count of 0 (an irradiance lightmap) reads only the irradiance tile, whatever the encoder."""
+        count = evaluated_count(planned) if planned else None
         if count not in groups:
-            if layout.sh_count:
+            if count is None:
+                fewer, name = SGTextureLayout(0, 0, True, layout.atlas_size, tiles=layout.tiles), \
+                    f"{GROUP_NAME} (irradiance)"
+            elif layout.sh_count:
                 fewer, name = layout, f"{GROUP_NAME} (SH L2)"
             else:
                 fewer = SGTextureLayout(count, min(count, layout.iwev_count), layout.has_irradiance, layout.atlas_size,
@@ -244,19 +255,19 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
         obj = scene.objects[object_plan.name]
         if OFFSET_KEY not in obj:
             raise BakeInputError(f"'{obj.name}': not captured (no lightmap tile); run the capture stage first")
-        glossy = {m.name: m.sg_count for m in object_plan.materials if m.glossy}
+        baked_counts = {m.name: m.sg_count if m.glossy else 0 for m in object_plan.materials if m.baked}
         slots = record.setdefault(obj.name, {})
         for index, slot in enumerate(obj.material_slots):
             current = slot.material
             if current is None:
                 continue
             original = bpy.data.materials.get(current.get(COPY_KEY, current.name))
-            if original is None or original.name not in glossy:
+            if original is None or original.name not in baked_counts:
                 continue
             if not original.use_fake_user:
                 original.use_fake_user = True
                 original[FAKE_USER_KEY] = True
-            copy = _baked_material(original, group_for(glossy[original.name]), principled_surface(original))
+            copy = _baked_material(original, group_for(baked_counts[original.name]), principled_surface(original))
             slot.material = copy
             slots[str(index)] = original.name
             scene[BAKE_RECORD_KEY] = json.dumps(record)  # recorded at once: an interrupted apply can be undone
@@ -269,11 +280,11 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
                 for name, size in uniform_bytes.items() if size > UNIFORM_BLOCK_LIMIT]
     seconds = time.perf_counter() - start
     sg_counts = {m.name: evaluated_count(m.sg_count) for o in plan.baked_objects for m in o.materials if m.glossy}
-    most = groups.get(layout.sg_count, {}).get("EEVEE")
+    most = groups.get(layout.sg_count, groups.get(None, {})).get("EEVEE")
     info = {"materials": sorted(baked_materials), "node_group": most.name if most else None,
             "nodes": flattened_node_count(most) if most else 0,  # nested groups expanded, as renderers compile it
             "node_groups": {g.name: flattened_node_count(g) for pair in groups.values() for g in pair.values()},
-            "sg_counts": sg_counts,
+            "sg_counts": sg_counts, "irradiance_only": plan.irradiance_only_materials,
             "sg_evaluations_saved": None if layout.sh_count else
             round(1 - sum(sg_counts.values()) / max(layout.sg_count * len(sg_counts), 1), 3),
             "encoder": "sh_l2" if layout.sh_count else "sg",

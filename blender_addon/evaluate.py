@@ -69,12 +69,14 @@ def inside_line_of_sight(scene, centre, location, see_through=()):
 
 
 def _view_cameras(scene, plan, count):
-    """The scene camera, then cameras orbiting the baked objects' bounding box, looking at its centre."""
+    """The scene camera, then cameras orbiting the bounding box of the objects with SGs (of every baked object where
+    only irradiance is baked), looking at its centre."""
     cameras = []
     if scene.camera is not None:
         cameras.append((scene.camera, False))
     points = []
-    for name in (o.name for o in plan.baked_objects):
+    framed = plan.sg_objects or [o.name for o in plan.baked_objects]
+    for name in framed:
         obj = scene.objects[name]
         points += [obj.matrix_world @ Vector(corner) for corner in obj.bound_box]
     if not points:
@@ -82,7 +84,7 @@ def _view_cameras(scene, plan, count):
     lo = Vector(np.min(np.array(points), axis=0))
     hi = Vector(np.max(np.array(points), axis=0))
     centre, radius = (lo + hi) / 2, max((hi - lo).length / 2, 1e-3)
-    baked = {o.name for o in plan.baked_objects}
+    baked = set(framed)
     for k in range(count - len(cameras)):
         azimuth = math.radians(35 + 110 * k)
         data = bpy.data.cameras.new("SGLF evaluate")
@@ -222,8 +224,9 @@ def reference_samples_for(settings) -> int:
 
 def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144), reference_samples: int = 128,
                    test_samples: int | None = None, with_eevee: bool = True) -> dict:
-    """test_samples defaults to reference_samples: surfaces the bake does not replace (rough materials) are
-    still path traced in the test render, and must be as converged as in the reference to compare fairly."""
+    """test_samples defaults to reference_samples: surfaces the bake does not replace (emitters, rough materials
+    left to the renderer) are still path traced in the test render, and must be as converged as in the reference
+    to compare fairly."""
     test_samples = test_samples or reference_samples
     start = time.perf_counter()
     out_dir = Path(out_dir)
@@ -315,8 +318,8 @@ def _evaluate_eevee(scene, cameras, references, cycles_tests, out_dir: Path, wor
         views.append({"flip": mean_flip, "psnr": psnr(ref_ldr, eevee_ldr), "rmse": rmse(ref_ldr, eevee_ldr),
                       "flip_vs_cycles_bake": parity, "picture": picture})
     summary = {key: float(np.mean([v[key] for v in views])) for key in ("flip", "psnr", "rmse", "flip_vs_cycles_bake")}
-    # Surfaces the bake leaves alone (roughness >= 0.6) are lit by EEVEE itself, which has no light from emissive
-    # meshes without its ray tracing: parity with Cycles' evaluation of the same nodes is per class.
+    # Surfaces the bake leaves alone (rough materials with --rough-materials renderer) are lit by EEVEE itself,
+    # which has no light from emissive meshes without its ray tracing: parity with Cycles' evaluation is per class.
     summary.update(views=views, samples=EEVEE_SAMPLES, flip_by_roughness=flip_by_roughness(flip_maps, roughness_maps),
                    flip_vs_cycles_bake_by_roughness=flip_by_roughness(parity_maps, roughness_maps),
                    shader_errors=failed, first_render_s=seconds[0] if seconds else None,

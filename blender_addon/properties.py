@@ -41,6 +41,11 @@ class SGLightfieldSettings(bpy.types.PropertyGroup):
                                   description="Steps refitting the SGs' axes, sharpness and amplitudes through the "
                                   "glossy shading after training (0: off; Production uses 150)",
                                   default=0, min=0, soft_max=1000, max=100000)
+    rough_materials: EnumProperty(
+        name="Rough Materials", default="IRRADIANCE",
+        description="Dielectrics of roughness 0.6 and above: what lights them in the baked scene",
+        items=[("IRRADIANCE", "Irradiance Lightmap", "Bake their diffuse light from the same light field (no SGs)"),
+               ("RENDERER", "Renderer's Own", "Leave them to the renderer's lighting (in EEVEE, its light probes)")])
     device: EnumProperty(name="Device", items=DEVICE_ITEMS, default="CPU")
     output_dir: StringProperty(name="Bake Directory", description="Where the bake writes its files",
                                default="//sg_bake", subtype="DIR_PATH",

@@ -350,9 +350,12 @@ def _texel_inputs(atlas, texels):
             channels(atlas, "ray_offset")[r, c].astype(np.float64))
 
 
-def midpoint_pairs(atlas: np.ndarray, count: int, seed: int = MIDPOINT_SEED) -> np.ndarray:
-    """(M, 4) [row, col, row2, col2]: `count` random adjacent valid texels of one object (adjacent_texel_pairs)."""
+def midpoint_pairs(atlas: np.ndarray, count: int, seed: int = MIDPOINT_SEED, object_ids=None) -> np.ndarray:
+    """(M, 4) [row, col, row2, col2]: `count` random adjacent valid texels of one object (adjacent_texel_pairs),
+    of the objects `object_ids` (all when None)."""
     pairs = adjacent_texel_pairs(atlas)
+    if object_ids is not None:
+        pairs = pairs[np.isin(channels(atlas, "object_id")[pairs[:, 0], pairs[:, 1]].astype(np.int64), object_ids)]
     pick = np.random.default_rng(seed).choice(len(pairs), size=min(count, len(pairs)), replace=False)
     return pairs[np.sort(pick)]
 
@@ -394,15 +397,16 @@ def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: i
     start = time.perf_counter()
     out_dir = Path(out_dir)
     plan_hash = plan.stage_hash("render")
-    atlas, _ = read_texel_maps(out_dir, plan.stage_hash("capture"))
+    atlas, texel_info = read_texel_maps(out_dir, plan.stage_hash("capture"))
     settings = plan.settings
     resolution = settings.lightfield_resolution
     result = RenderResult()
     texels = valid_texels(atlas)
     result.texels = len(texels)
     jobs = [("lightfield", texels, _texel_inputs(atlas, texels), 3)]
-    if midpoints > 0:
-        pairs = midpoint_pairs(atlas, midpoints)
+    if midpoints > 0 and plan.sg_objects:
+        with_sgs = [o["id"] for o in texel_info["objects"] if o["name"] in plan.sg_objects]  # training reads them
+        pairs = midpoint_pairs(atlas, midpoints, object_ids=with_sgs)
         jobs.append(("midpoints", pairs, _midpoint_inputs(scene, atlas, pairs), 3))
     iwev_channels = plan.environment.iwev_channels if plan.environment.iwev else 0
     if iwev_channels:

@@ -10,11 +10,11 @@ import bpy
 import numpy as np
 
 try:  # inside the installed extension the numpy side is a sibling package
-    from ..shaders.bake_plan import (GLOSSY_ROUGHNESS_MAX, BakeInputError, BakePlan, BakeSettings, EnvironmentPlan,
-                                     MaterialPlan, ObjectPlan, auto_sg_count)
+    from ..shaders.bake_plan import (GLOSSY_ROUGHNESS_MAX, ROUGH_METALLIC_MAX, BakeInputError, BakePlan, BakeSettings,
+                                     EnvironmentPlan, MaterialPlan, ObjectPlan, auto_sg_count)
 except ImportError:  # bpy as a module with the repository on sys.path
-    from shaders.bake_plan import (GLOSSY_ROUGHNESS_MAX, BakeInputError, BakePlan, BakeSettings, EnvironmentPlan,
-                                   MaterialPlan, ObjectPlan, auto_sg_count)
+    from shaders.bake_plan import (GLOSSY_ROUGHNESS_MAX, ROUGH_METALLIC_MAX, BakeInputError, BakePlan, BakeSettings,
+                                   EnvironmentPlan, MaterialPlan, ObjectPlan, auto_sg_count)
 
 # An environment whose luminance-weighted chroma (max-min)/max stays below this is treated as grey:
 # one IWEV channel instead of three.
@@ -95,15 +95,28 @@ def analyse_material(material, settings: BakeSettings) -> MaterialPlan:
     if textured:
         return MaterialPlan(name, float(roughness), float(metallic), True,
                             settings.sg_count or 16, "roughness is textured: treated as glossy, the most SGs")
-    glossy = roughness < GLOSSY_ROUGHNESS_MAX
+    rough_metal = roughness >= GLOSSY_ROUGHNESS_MAX and metallic >= ROUGH_METALLIC_MAX
+    glossy = roughness < GLOSSY_ROUGHNESS_MAX or rough_metal
     most = settings.sg_count or 16
     count = 0 if not glossy else most if settings.uniform_sg_count else auto_sg_count(roughness, most)
-    reason = (f"roughness {roughness:.2f} < {GLOSSY_ROUGHNESS_MAX}: glossy, needs light-field SGs" if glossy else
-              f"roughness {roughness:.2f} >= {GLOSSY_ROUGHNESS_MAX}: not baked, lobe wider than ~40 deg "
-              "(the renderer's own diffuse lighting; EEVEE's irradiance volumes give it indirect light)")
+    irradiance_only = False
+    if rough_metal:
+        reason = (f"roughness {roughness:.2f} >= {GLOSSY_ROUGHNESS_MAX} but metallic {metallic:.2f}: "
+                  "all its light is specular, so light-field SGs")
+    elif glossy:
+        reason = f"roughness {roughness:.2f} < {GLOSSY_ROUGHNESS_MAX}: glossy, needs light-field SGs"
+    elif _is_emissive(material):
+        reason = f"roughness {roughness:.2f}, emissive: not baked, its emission is the light it shows"
+    elif settings.rough_materials == "irradiance":
+        irradiance_only = True
+        reason = (f"roughness {roughness:.2f} >= {GLOSSY_ROUGHNESS_MAX}: irradiance lightmap, no SGs (its lobe is "
+                  "wider than ~40 deg; the specular is the split-sum estimate of the irradiance's)")
+    else:
+        reason = (f"roughness {roughness:.2f} >= {GLOSSY_ROUGHNESS_MAX}: not baked (rough materials: renderer), "
+                  "the renderer's own lighting; in EEVEE only its irradiance volumes give it indirect light")
     if glossy and count < most:
         reason += f"; {count} SGs are within the error budget at this roughness"
-    return MaterialPlan(name, float(roughness), float(metallic), glossy, count, reason)
+    return MaterialPlan(name, float(roughness), float(metallic), glossy, count, reason, irradiance_only)
 
 
 def principled_surface(material) -> dict:
@@ -262,21 +275,27 @@ def _build_plan(scene, settings: BakeSettings, depsgraph) -> BakePlan:
         if any(_is_emissive(unbaked(m)) for m in mats if m is not None):
             emissive.append(obj.name)
         area = _world_area(obj, depsgraph)
-        glossy = any(mp.glossy for mp in mat_plans)
+        glossy = [mp.name for mp in mat_plans if mp.glossy]
+        lightmapped = [mp.name for mp in mat_plans if mp.irradiance_only]
+        baked = bool(glossy or lightmapped)
         if area <= 0:
             warnings.append(f"'{obj.name}': no faces with area, skipped")
             objects.append(ObjectPlan(obj.name, 0.0, 0, False, mat_plans, "no faces with area"))
             continue
-        texels = int(np.ceil(area * settings.texel_density**2)) if glossy else 0
-        reason = ("glossy material(s): " + ", ".join(mp.name for mp in mat_plans if mp.glossy)) if glossy \
-            else "no glossy material: not baked, left to the renderer's own lighting"
-        objects.append(ObjectPlan(obj.name, round(area, 6), texels, glossy, mat_plans, reason))
+        texels = int(np.ceil(area * settings.texel_density**2)) if baked else 0
+        reason = "; ".join(([f"glossy material(s): {', '.join(glossy)}"] if glossy else [])
+                           + ([f"irradiance lightmap: {', '.join(lightmapped)}"] if lightmapped else [])) \
+            or "no glossy or lightmapped material: not baked, left to the renderer's own lighting"
+        objects.append(ObjectPlan(obj.name, round(area, 6), texels, baked, mat_plans, reason))
     if not any(o.bake_lightfield for o in objects):
         raise BakeInputError("nothing to bake: no mesh has a glossy material (roughness below "
-                             f"{GLOSSY_ROUGHNESS_MAX}); the light field would not be used")
+                             f"{GLOSSY_ROUGHNESS_MAX}) or a rough one to lightmap; the light field would not be used")
     lamps = [o.name for o in visible if o.type == "LIGHT" and o.data.energy > 0]
     hair = [o.name for o in visible if o.type == "CURVES"]
     environment = analyse_environment(scene)
+    if environment.iwev and not any(m.glossy for o in objects if o.bake_lightfield for m in o.materials):
+        environment.iwev, environment.iwev_channels = False, 0
+        environment.reason += "; env visibility off: no glossy material (the irradiance lightmaps hold the sky)"
     if not lamps and not emissive and not environment.present:
         warnings.append("no lamps, emissive meshes or environment: the bake will be black")
     return BakePlan(scene=scene.name, settings=settings, objects=objects, environment=environment, lamps=lamps,

@@ -18,7 +18,7 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script: make the repository importable
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from shaders.bake_plan import PRESETS, BakeCancelled, BakeInputError, BakeSettings  # noqa: E402
+from shaders.bake_plan import PRESETS, ROUGH_MATERIALS, BakeCancelled, BakeInputError, BakeSettings  # noqa: E402
 
 ALL_STAGES = ("capture", "render", "train", "apply", "evaluate")
 IMPLEMENTED_STAGES = ALL_STAGES  # the plan is always made; stages are added here as they land
@@ -47,6 +47,9 @@ def parse_args(args: list[str]) -> argparse.Namespace:
     p.add_argument("--training-budget", type=float, dest="training_budget_s")
     p.add_argument("--lobe-refit-steps", type=int, help="Adam steps refitting the SGs' axes, sharpness and "
                    "amplitudes through the glossy shading after training (0: off; Production: 150)")
+    p.add_argument("--rough-materials", choices=ROUGH_MATERIALS, default="irradiance",
+                   help="dielectrics of roughness >= 0.6: an irradiance lightmap from the same light field, or the "
+                   "renderer's own lighting")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     p.add_argument("--tile", metavar="i/N", help="render only share i of N of the tiles (render farms); "
                    "the shares merge in the bake directory")
@@ -225,7 +228,8 @@ def run(ns, reporter: Reporter) -> int:
     settings = BakeSettings.from_preset(
         ns.preset, texel_density=ns.texel_density, lightfield_resolution=ns.lightfield_resolution,
         samples=ns.samples, sg_count=ns.sg_count, uniform_sg_count=ns.uniform_sg_count,
-        training_budget_s=ns.training_budget_s, lobe_refit_steps=ns.lobe_refit_steps, device=ns.device)
+        training_budget_s=ns.training_budget_s, lobe_refit_steps=ns.lobe_refit_steps,
+        rough_materials=ns.rough_materials, device=ns.device)
     out = ns.out.expanduser().resolve()
     if out.exists() and not out.is_dir():
         raise BakeInputError(f"{ns.out}: exists and is not a directory")

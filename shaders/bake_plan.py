@@ -18,9 +18,12 @@ PLAN_VERSION = 1
 
 # A material is 'glossy' (gets light-field SGs) below this Principled roughness. At 0.6 the warped
 # GGX lobe (alpha = 0.36, sharpness 2/alpha^2/8 = 1.9) is ~40 degrees wide: its view dependence is
-# well below what irradiance alone misses, so rougher materials are not baked: they keep the renderer's own
-# lighting (in EEVEE, its irradiance volumes carry their indirect light).
+# well below what irradiance alone misses, so a rougher dielectric gets an irradiance lightmap (ROUGH_MATERIALS
+# 'irradiance', the default) or keeps the renderer's own lighting ('renderer'). Rough metals have no diffuse
+# to carry their light, so they stay glossy.
 GLOSSY_ROUGHNESS_MAX = 0.6
+ROUGH_METALLIC_MAX = 0.5  # a rough material at least this metallic is shaded with SGs
+ROUGH_MATERIALS = ("irradiance", "renderer")
 
 # Chosen from `python -m headless.bench --sections knobs` (spheres, one knob at a time from the old Draft, glossy
 # FLIP against a 128 spp Cycles reference whose own noise floor there is 0.051): SGs at most 8 -> 16 was the best
@@ -73,6 +76,7 @@ class BakeSettings:
     uniform_sg_count: bool = False  # every glossy material gets sg_count SGs, whatever its roughness
     training_budget_s: float = 60.0
     lobe_refit_steps: int = 0  # Adam steps refitting SG axes, sharpness and amplitudes through the glossy (0: off)
+    rough_materials: str = "irradiance"  # rough dielectrics: an irradiance lightmap, or the renderer's own lighting
     device: str = "cpu"
 
     @classmethod
@@ -95,6 +99,8 @@ class BakeSettings:
             (1 <= self.training_budget_s <= 7 * 24 * 3600, f"training budget {self.training_budget_s} s is outside 1 s..7 days"),
             (0 <= self.lobe_refit_steps <= 100_000, f"lobe refit steps {self.lobe_refit_steps} is outside 0..100000"),
             (self.device in ("cpu", "cuda"), f"device {self.device!r} is not 'cpu' or 'cuda'"),
+            (self.rough_materials in ROUGH_MATERIALS,
+             f"rough materials {self.rough_materials!r} is not one of {', '.join(ROUGH_MATERIALS)}"),
         ]
         for ok, message in checks:
             if not ok:
@@ -109,6 +115,11 @@ class MaterialPlan:
     glossy: bool
     sg_count: int
     reason: str
+    irradiance_only: bool = False  # baked as an irradiance lightmap: diffuse from the light field, no SGs
+
+    @property
+    def baked(self) -> bool:
+        return self.glossy or self.irradiance_only
 
 
 @dataclass
@@ -152,6 +163,16 @@ class BakePlan:
         return sum(o.texels for o in self.baked_objects)
 
     @property
+    def sg_objects(self) -> list[str]:
+        """Objects whose texels get SGs: those with a glossy material (a rough material beside a glossy one keeps
+        SGs, as bilinear lookups blend neighbouring texels). The others' texels hold only irradiance."""
+        return [o.name for o in self.baked_objects if any(m.glossy for m in o.materials)]
+
+    @property
+    def irradiance_only_materials(self) -> list[str]:
+        return sorted({m.name for o in self.baked_objects for m in o.materials if m.irradiance_only})
+
+    @property
     def max_sg_count(self) -> int:
         return max((m.sg_count for o in self.baked_objects for m in o.materials if m.glossy), default=0)
 
@@ -173,6 +194,8 @@ class BakePlan:
                     f"{self.settings.sg_count or 16}")
             lines.append("SGs per material: " + ", ".join(f"{k} {v}" for k, v in sorted(glossy.items()))
                          + f" ({rule})")
+        if self.irradiance_only_materials:
+            lines.append("irradiance lightmap only (rough, no SGs): " + ", ".join(self.irradiance_only_materials))
         lines.append(f"environment: {self.environment.reason}")
         if self.lamps or self.emissive_objects:
             lines.append(f"light sources: lamps {self.lamps or 'none'}, "
@@ -189,8 +212,10 @@ class BakePlan:
         return {"disk_mb": round(disk / 1e6, 1), "ram_mb": round(ram / 1e6, 1)}
 
     def summary(self) -> str:
-        glossy = len(self.baked_objects)
-        parts = [f"{glossy} glossy object{'s' if glossy != 1 else ''}",
+        glossy = sum(any(m.glossy for m in o.materials) for o in self.baked_objects)
+        rough = len(self.baked_objects) - glossy
+        parts = [f"{glossy} glossy object{'s' if glossy != 1 else ''}"
+                 + (f" + {rough} with an irradiance lightmap" if rough else ""),
                  f"{self.max_sg_count} SGs" if glossy else "no light-field SGs",
                  f"env visibility {'on (' + ('RGB' if self.environment.iwev_channels == 3 else 'mono') + ')' if self.environment.iwev else 'off'}",
                  f"hair {'offered' if self.hair_objects else 'off'}",

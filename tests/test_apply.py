@@ -126,6 +126,17 @@ def test_node_group_matches_its_numpy_reference_in_cycles(tmp_path, for_cycles):
 
 
 @pytest.mark.parametrize("for_cycles", (False, True), ids=("eevee_graph", "cycles_graph"))
+def test_irradiance_lightmap_group_matches_its_numpy_reference_in_cycles(tmp_path, for_cycles):
+    """The group of rough materials baked as an irradiance lightmap (no SGs): the split-sum specular of the
+    irradiance and the diffuse layered under it, from roughness 0.6 to 1 and normal to grazing view."""
+    h, w = 4, 4
+    layout = SGTextureLayout(0, has_irradiance=True, atlas_size=(2 * w, 2 * h))
+    irradiance = np.random.default_rng(3).uniform(0.01, 3, (h, w, 3))
+    cells = {("irradiance", 0): np.concatenate([irradiance, np.ones((h, w, 1))], -1)}
+    assert _parity_worst(tmp_path, layout, cells, [], (0.6, 0.8, 1.0), (0.0, 60.0, 89.0), for_cycles) < 1e-3
+
+
+@pytest.mark.parametrize("for_cycles", (False, True), ids=("eevee_graph", "cycles_graph"))
 def test_sixteen_sgs_with_environment_visibility_fit_in_cycles_svm_stack(tmp_path, for_cycles):
     """The largest group the presets make (16 SGs, 16 IWEV SGs, 16 environment SGs) compiles in Cycles' 255-slot SVM
     stack and still equals its numpy reference (without the lookup barriers: "out of SVM stack space", black)."""
@@ -186,8 +197,11 @@ def test_write_back_remove_restores_everything_and_rebake_does_not_pile_up(tmp_p
         counts.append((len(bpy.data.images), len(bpy.data.node_groups), len(bpy.data.materials)))
     assert counts[0] == counts[1]  # a second bake replaces, never piles up
     assert f"{GROUP_NAME} / glossy SG" in bpy.data.node_groups  # built once, instanced per SG
-    assert info["materials"] == ["Glossy (SG bake)"] and ball.material_slots[0].material.name == "Glossy (SG bake)"
-    assert floor.material_slots[0].material == rough  # rough: not baked
+    assert info["materials"] == ["Glossy (SG bake)", "Rough (SG bake)"]
+    assert ball.material_slots[0].material.name == "Glossy (SG bake)"
+    assert info["irradiance_only"] == ["Rough"]  # rough: an irradiance lightmap through its own small group
+    assert baked_group(floor.material_slots[0].material).name == f"{GROUP_NAME} (irradiance)"
+    assert baked_group(floor.material_slots[0].material, "CYCLES").name == f"{GROUP_NAME} (irradiance){CYCLES_SUFFIX}"
     assert bpy.data.images[IMAGE_NAME].packed_file is not None
     assert _material_fingerprint(glossy) == before["Glossy"]  # the original is never edited
     with active_scene(scene), quiet_stdout():  # the baked scene renders in Cycles
@@ -217,13 +231,14 @@ def test_write_back_remove_restores_everything_and_rebake_does_not_pile_up(tmp_p
     assert report["errors"]["flip"] == errors["flip"] and set(report["timings_s"]) >= {"capture", "render", "train",
                                                                                         "apply", "evaluate"}
     assert "data:image/png;base64" in (tmp_path / "report.html").read_text()
-    assert remove_bake(scene) == 2  # the slot of each instance (they share the mesh and its slot)
+    assert remove_bake(scene) == 3  # the floor's slot and the slot of each instance (they share the mesh and slot)
     assert ball.material_slots[0].material == glossy and twin.material_slots[0].material == glossy
+    assert floor.material_slots[0].material == rough and "Rough (SG bake)" not in bpy.data.materials
     assert {m.name: _material_fingerprint(m) for m in (glossy, rough)} == before
     assert {m.name: mesh_fingerprint(m) for m in (ball.data, floor.data)} == meshes_before
     assert not glossy.use_fake_user and "Glossy (SG bake)" not in bpy.data.materials
-    baked_group = re.compile(re.escape(GROUP_NAME) + r"( \(.*\))?( / .*)?$")  # and its nested groups
-    assert not [g.name for g in bpy.data.node_groups if baked_group.match(g.name)]
+    group_name = re.compile(re.escape(GROUP_NAME) + r"( \(.*\))?( / .*)?$")  # and its nested groups
+    assert not [g.name for g in bpy.data.node_groups if group_name.match(g.name)]
     assert IMAGE_NAME not in bpy.data.images
     assert BAKE_RECORD_KEY not in scene
 

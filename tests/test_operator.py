@@ -46,7 +46,7 @@ def test_operator_bakes_spheres_at_draft_end_to_end_and_remove_restores(addon, t
         before = scene_fingerprint(scene)
         assert bpy.ops.sg_lightfield.bake() == {"FINISHED"}
         baked = [s.material.name for o in scene.objects for s in o.material_slots if s.material]
-        assert sum(name.endswith("(SG bake)") for name in baked) == 4
+        assert sum(name.endswith("(SG bake)") for name in baked) == 5  # four spheres and the lightmapped floor
         assert (tmp_path / "bake" / "report.json").is_file() and (tmp_path / "bake" / "sg_packed.exr").is_file()
         assert not scene.sg_lightfield.is_baking and "baked into" in scene.sg_lightfield.status
         assert bpy.ops.sg_lightfield.remove_bake() == {"FINISHED"}

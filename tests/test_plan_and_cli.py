@@ -20,8 +20,10 @@ DRAFT = BakeSettings.from_preset("draft")
 
 def test_spheres_plan_models_only_what_the_scene_requires():
     plan = build_plan(build_demo_scene("demo:spheres"), DRAFT)
-    baked = {base_name(o.name) for o in plan.baked_objects}
-    assert baked == {f"Sphere (roughness {r})" for r in ("0.2", "0.3", "0.4", "0.5")}
+    spheres = {f"Sphere (roughness {r})" for r in ("0.2", "0.3", "0.4", "0.5")}
+    assert set(map(base_name, plan.sg_objects)) == spheres  # the emissive arcs keep their shading
+    assert {base_name(o.name) for o in plan.baked_objects} == spheres | {"Floor"}  # rough: an irradiance lightmap
+    assert list(map(base_name, plan.irradiance_only_materials)) == ["Floor"]
     assert not plan.environment.iwev  # black world: no environment visibility
     assert sorted(map(base_name, plan.emissive_objects)) == ["Arc 0", "Arc 1", "Arc 2"] and plan.lamps == []
     assert plan.hair_objects == [] and "hair off" in plan.summary()
@@ -79,11 +81,43 @@ def test_cameras_and_empties_only():
 
 
 def test_no_glossy_material_and_no_material():
+    """Only rough materials: an irradiance lightmap bake (no SGs, no env visibility); with rough materials left to
+    the renderer there is nothing to bake."""
     rough = _material("rough", 0.9)
     cube = mesh_object("Rough Cube", lambda bm: bmesh.ops.create_cube(bm, size=1.0), rough)
     bare = mesh_object("No Material", lambda bm: bmesh.ops.create_cube(bm, size=1.0))
+    scene = _scene_with(cube, bare)
+    plan = build_plan(scene, DRAFT)
+    assert [base_name(o.name) for o in plan.baked_objects] == ["Rough Cube"] and plan.texels > 0
+    assert plan.sg_objects == [] and plan.max_sg_count == 0
+    assert list(map(base_name, plan.irradiance_only_materials)) == ["rough"]
+    assert "no light-field SGs" in plan.summary() and "irradiance lightmap only" in "\n".join(plan.decisions())
     with pytest.raises(BakeInputError, match="no mesh has a glossy material"):
-        build_plan(_scene_with(cube, bare), DRAFT)
+        build_plan(scene, BakeSettings.from_preset("draft", rough_materials="renderer"))
+
+
+def test_rough_dielectrics_get_irradiance_lightmaps_rough_metals_sgs_and_emitters_keep_their_shading():
+    def cube(name, mat):
+        return mesh_object(name, lambda bm: bmesh.ops.create_cube(bm, size=1.0), mat)
+
+    glossy, rough, rough_metal = _material("glossy", 0.2), _material("rough", 0.9), _material("rough metal", 0.8, 1.0)
+    glowing = _material("glowing", 0.9)
+    bsdf = next(n for n in glowing.node_tree.nodes if n.type == "BSDF_PRINCIPLED")
+    bsdf.inputs["Emission Color"].default_value, bsdf.inputs["Emission Strength"].default_value = (1, 1, 1, 1), 5.0
+    both = cube("Both", glossy)
+    both.data.materials.append(rough)  # a rough material beside a glossy one: its texels keep SGs
+    scene = _scene_with(cube("Glossy", glossy), cube("Rough", rough), cube("Rough Metal", rough_metal),
+                        cube("Glowing", glowing), both)
+    plan = build_plan(scene, DRAFT)
+    materials = {base_name(m.name): m for o in plan.objects for m in o.materials}
+    assert materials["rough"].irradiance_only and not materials["rough"].glossy and materials["rough"].sg_count == 0
+    assert materials["rough metal"].glossy and materials["rough metal"].sg_count > 0
+    assert not materials["glowing"].baked and "emissive" in materials["glowing"].reason
+    assert {base_name(o.name) for o in plan.baked_objects} == {"Glossy", "Rough", "Rough Metal", "Both"}
+    assert sorted(map(base_name, plan.sg_objects)) == ["Both", "Glossy", "Rough Metal"]
+    renderer = build_plan(scene, BakeSettings.from_preset("draft", rough_materials="renderer"))
+    assert {base_name(o.name) for o in renderer.baked_objects} == {"Glossy", "Rough Metal", "Both"}
+    assert renderer.stage_hash("capture") != plan.stage_hash("capture")
 
 
 def test_zero_area_and_loose_vertices_are_skipped_with_a_warning():
@@ -104,7 +138,7 @@ def test_zero_area_and_loose_vertices_are_skipped_with_a_warning():
 @pytest.mark.parametrize("overrides, message", [
     (dict(texel_density=1e9), "texel density"), (dict(lightfield_resolution=4), "resolution"),
     (dict(samples=0), "samples"), (dict(sg_count=999), "SG count"), (dict(device="tpu"), "device"),
-    (dict(lobe_refit_steps=-1), "lobe refit steps")])
+    (dict(lobe_refit_steps=-1), "lobe refit steps"), (dict(rough_materials="ignore"), "rough materials")])
 def test_absurd_settings_are_rejected(overrides, message):
     with pytest.raises(BakeInputError, match=message):
         BakeSettings.from_preset("draft", **overrides)

@@ -81,3 +81,29 @@ def test_shelf_pack_never_overlaps_and_keeps_borders(sizes):
 def test_shelf_pack_refuses_an_absurd_atlas():
     with pytest.raises(ValueError, match="max side"):
         shelf_pack([(20000, 10)], max_side=16384)
+
+
+def test_smoothing_the_irradiance_lowers_noise_and_keeps_objects_and_creases_apart():
+    """A 10 x 10 atlas: object 1 is a floor (top half, normal +Z) meeting a wall (rows 5-9, normal +X) at a crease;
+    object 2 sits beside it in the atlas. Noisy values per part: smoothing lowers the noise and never mixes parts."""
+    from shaders.texel_maps import CHANNEL, TEXEL_CHANNELS, smooth_over_texels
+
+    atlas = np.zeros((10, 10, len(TEXEL_CHANNELS)), np.float32)
+    rows, cols = np.mgrid[0:10, 0:10]
+    atlas[..., CHANNEL["P.X"]], atlas[..., CHANNEL["P.Y"]] = 0.1 * cols, 0.1 * rows
+    atlas[..., CHANNEL["Ng.Z"]] = np.where(rows < 5, 1.0, 0.0)
+    atlas[..., CHANNEL["Ng.X"]] = np.where(rows < 5, 0.0, 1.0)
+    atlas[..., CHANNEL["object_id"]] = np.where(cols < 6, 1, 2)
+    atlas[..., CHANNEL["texel_size"]] = 0.1
+    texels = np.stack([rows.ravel(), cols.ravel()], -1)
+    part = np.where(cols >= 6, 2, np.where(rows < 5, 0, 1)).ravel()
+    truth = np.array([1.0, 4.0, 9.0])[part][:, None] * np.ones(3)
+    noisy = truth * (1 + 0.2 * np.random.default_rng(0).standard_normal(truth.shape))
+    smoothed = smooth_over_texels(atlas, texels, noisy)
+    for k in range(3):
+        mine = part == k
+        assert np.abs(smoothed[mine] - truth[mine]).std() < 0.75 * np.abs(noisy[mine] - truth[mine]).std()
+        # no part is pulled towards another, even at the borders (a 2.25x or 9x brighter part next to it)
+        assert np.abs(smoothed[mine] / truth[mine] - 1).max() <= np.abs(noisy[mine] / truth[mine] - 1).max()
+    flat = np.ones_like(truth)
+    np.testing.assert_allclose(smooth_over_texels(atlas, texels, flat), flat)  # weights are normalised

@@ -24,7 +24,7 @@ from shaders.bake_report import save_png, update_report  # noqa: E402
 from shaders.env_visibility import above_horizon_fraction  # noqa: E402
 from shaders.lightfield_tiles import preview_mosaic, read_images  # noqa: E402
 from shaders.sg_textures import bytes_per_texel, sg_texture_path, write_sg_texture, write_sh_texture  # noqa: E402
-from shaders.texel_maps import channels, read_texel_maps  # noqa: E402
+from shaders.texel_maps import channels, read_texel_maps, texels_of_objects  # noqa: E402
 
 
 @dataclass
@@ -214,6 +214,8 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
     sg_count = plan.max_sg_count or settings.sg_count or 16
     budget = time_budget_s if time_budget_s is not None else settings.training_budget_s
     kinds = ["lightfield"] + (["env_visibility"] if plan.environment.iwev else [])
+    if not plan.sg_objects:  # only irradiance lightmaps: apply integrates the light fields, nothing to fit
+        kinds = []
     if encoder not in ("cnn", "fixed_sg", "sh_l2"):
         raise ValueError(f"encoder {encoder!r} is not 'cnn', 'fixed_sg' or 'sh_l2'")
     if encoder == "sh_l2" and plan.environment.iwev:
@@ -221,6 +223,10 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
     result = TrainResult()
     for k, kind in enumerate(kinds):
         texels, images = read_images(out_dir / kind, plan.stage_hash("render"))
+        with_sgs = texels_of_objects(atlas, texel_info, texels, plan.sg_objects)  # lightmap-only texels get none
+        texels, images = texels[with_sgs], images[with_sgs]
+        if not len(texels):
+            raise BakeInputError("no texel of a glossy material was rendered: nothing for the SGs to fit")
         normals = channels(atlas, "Ng.X", 3)[texels[:, 0], texels[:, 1]]
         roughness = texel_roughness(atlas, texel_info, texels, plan)
         if encoder == "fixed_sg":  # the production-lightmapper baseline, through the same textures and node group
@@ -372,7 +378,7 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
         result.metrics["environment"] = env["metrics"]
     result.seconds = time.perf_counter() - start
     update_report(out_dir, plan.stage_hash("capture"), timings_s={"train": result.seconds}, encoder=encoder,
-                  sg_count=0 if encoder == "sh_l2" else amplitude.shape[1],
+                  sg_count=0 if encoder == "sh_l2" or not kinds else amplitude.shape[1],
                   bytes_per_texel=result.bytes_per_texel,
                   train={"metrics": result.metrics, "epochs": result.epochs, "stopped_because": result.stopped_because,
                          "device": device, "files": result.files})
