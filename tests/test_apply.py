@@ -86,7 +86,7 @@ def _parity_worst(tmp_path, layout, cells, env_sgs, roughnesses, angles_deg, for
             normal = (np.sin(np.radians(theta)), 0.0, np.cos(np.radians(theta)))
             node.inputs["Normal"].default_value = normal
             node.inputs["Roughness"].default_value = roughness
-            node.inputs["F0"].default_value = (0.04, 0.5, 1.0, 1.0)
+            node.inputs["F0"].default_value = (0.04, 0.5, 0.9, 1.0)  # at 1 the layered diffuse is ~0
             node.inputs["Albedo"].default_value = (0.8, 0.5, 0.2, 1.0)
             scene.render.filepath = str(tmp_path / "parity.exr")
             with active_scene(scene), quiet_stdout():
@@ -94,10 +94,11 @@ def _parity_worst(tmp_path, layout, cells, env_sgs, roughnesses, angles_deg, for
             rendered, _, _ = read_exr(tmp_path / "parity.exr", channels=["R", "G", "B"])
             reference = shade(NumpyOps(), lookup, np.broadcast_to(normal, (h, w, 3)),
                               np.broadcast_to((0.0, 0.0, 1.0), (h, w, 3)), np.full((h, w), roughness),
-                              np.broadcast_to((0.04, 0.5, 1.0), (h, w, 3)), np.broadcast_to((0.8, 0.5, 0.2), (h, w, 3)),
+                              np.broadcast_to((0.04, 0.5, 0.9), (h, w, 3)), np.broadcast_to((0.8, 0.5, 0.2), (h, w, 3)),
                               layout.sg_count, layout.iwev_count, env_sgs, layout.has_irradiance,
                               layout.sh_count)["total"]
-            worst = max(worst, float((np.abs(rendered - reference) / np.maximum(np.abs(reference), 1e-6)).max()))
+            # relative, and absolute below 0.1: the renders carry an offset of ~5e-5 (the same in every channel)
+            worst = max(worst, float((np.abs(rendered - reference) / np.maximum(np.abs(reference), 0.1)).max()))
     return worst
 
 
@@ -169,6 +170,59 @@ def _material_fingerprint(mat):
     links = sorted((l.from_node.name, l.from_socket.identifier, l.to_node.name, l.to_socket.identifier)
                    for l in tree.links)
     return json.dumps([mat.name, nodes, links], default=str)
+
+
+def test_layered_diffuse_and_split_sum_specular_match_principled_in_a_white_furnace(tmp_path):
+    """Dielectric spheres under a uniform white sky, rendered by Cycles' Principled BSDF and shaded by `shade` from
+    their irradiance (pi) without SGs: the specular's split-sum albedo and the diffuse layered under it, per n.v.
+    A black base shows the specular alone; a grey one the layering, which leaving out costs 0.8 A (2 % to 12 % here)."""
+    from blender_addon.render import render_still
+    from blender_addon.scene_analysis import enable_nodes, principled_surface
+
+    cases = [(roughness, base) for roughness in (0.25, 0.9) for base in (0.0, 0.8)]
+    scene = bpy.data.scenes.new("white furnace")
+    world = bpy.data.worlds.new("white")
+    enable_nodes(world)
+    world.node_tree.nodes["Background"].inputs["Color"].default_value = (1, 1, 1, 1)
+    scene.world = world
+    for i, (roughness, base) in enumerate(cases):
+        mat = material(f"Furnace {i}", roughness)
+        mat.node_tree.nodes["Principled BSDF"].inputs["Base Color"].default_value = (base, base, base, 1)
+        ball = mesh_object(f"Furnace ball {i}", uv_sphere(1.0, 96, 48), mat)
+        ball.data.shade_smooth()
+        ball.location = (2.2 * (i % 2) - 1.1, 2.2 * (i // 2) - 1.1, 0)
+        ball.visible_diffuse = ball.visible_glossy = ball.visible_transmission = ball.visible_shadow = False  # convex
+        scene.collection.objects.link(ball)
+    camera = bpy.data.objects.new("furnace camera", bpy.data.cameras.new("furnace camera"))
+    camera.data.type, camera.data.ortho_scale = "ORTHO", 4.4
+    camera.location = (0, 0, 10)
+    scene.collection.objects.link(camera)
+    scene.camera = camera
+    scene.render.engine = "CYCLES"
+    scene.cycles.samples, scene.cycles.use_denoising = 256, False
+    scene.cycles.pixel_filter_type, scene.cycles.filter_width = "BOX", 0.01
+    scene.render.resolution_x = scene.render.resolution_y = 96
+    scene.render.resolution_percentage = 100
+    scene.render.image_settings.file_format, scene.render.image_settings.color_depth = "OPEN_EXR", "32"
+    pixels = render_still(scene, tmp_path / "furnace.exr")[::-1].mean(axis=-1)  # rows from the bottom, as y
+    centres = (np.arange(96) + 0.5) / 96 * 4.4 - 2.2
+    x, y = np.meshgrid(centres, centres)
+    for i, (roughness, base) in enumerate(cases):
+        dx, dy = x - (2.2 * (i % 2) - 1.1), y - (2.2 * (i // 2) - 1.1)
+        ndotv = np.sqrt(np.clip(1 - dx**2 - dy**2, 0, 1))
+        surface = principled_surface(scene.objects[f"Furnace ball {i}"].active_material)
+        for low, high in ((0.25, 0.5), (0.5, 0.75), (0.75, 1.0)):
+            ring = (ndotv > low) & (ndotv <= high) & (dx**2 + dy**2 < 0.98)
+            n = np.stack([dx[ring], dy[ring], ndotv[ring]], -1)
+            shaded = shade(NumpyOps(), lambda name, j: (np.full((len(n), 3), np.pi), None), n,
+                           np.broadcast_to((0.0, 0.0, 1.0), n.shape), np.full(len(n), roughness),
+                           np.asarray(surface["f0"]), np.full(3, base), sg_count=0)
+            ours, cycles = shaded["total"].mean(), pixels[ring].mean()
+            if base:  # 256 spp: the rings' means are within 0.4 % of ours; without layering 1.8 % to 12 % above
+                assert ours == pytest.approx(cycles, rel=0.01), (roughness, low, ours, cycles)
+                assert ours + base * shaded["glossy"].mean() > 1.012 * cycles
+            else:  # Schlick's Fresnel (ours) is below Cycles' exact dielectric Fresnel away from normal incidence
+                assert ours == pytest.approx(cycles, rel=0.1 if low >= 0.75 else 0.3), (roughness, low, ours, cycles)
 
 
 def test_write_back_remove_restores_everything_and_rebake_does_not_pile_up(tmp_path):

@@ -184,24 +184,49 @@ def test_local_warp_follows_the_lobe_above_the_mirror_direction_at_grazing():
     assert abs(local / ref - 1) < 0.15, (local, ref)
 
 
-def test_split_sum_albedo_of_rough_lightmapped_materials_matches_quadrature():
-    """The irradiance lightmap's specular weight: GGX directional albedo F0 * scale + bias (sg_shading) against a
-    hemisphere quadrature of the reference BRDF, over its roughness range and n.v down to grazing."""
-    from shaders.quadrature import fibonacci_sphere
-    from shaders.sg_shading import NumpyOps, split_sum_albedo
+def _directional_albedo(roughness, ndotv, f0, n=300):
+    """Hemisphere integral of the reference integrand ggx_brdf_cos towards `view`, importance-sampling the GGX NDF
+    on a stratified n x n grid (a uniform quadrature cannot resolve the lobes of low roughness)."""
+    alpha = m.ggx_alpha(roughness)
+    u1, u2 = (g.ravel() for g in np.meshgrid((np.arange(n) + 0.5) / n, (np.arange(n) + 0.5) / n, indexing="ij"))
+    cos_h = np.sqrt((1 - u1) / (1 + (alpha**2 - 1) * u1))
+    sin_h, phi = np.sqrt(1 - cos_h**2), 2 * np.pi * u2
+    h = np.stack([sin_h * np.cos(phi), sin_h * np.sin(phi), cos_h], -1)
+    view = np.array([np.sqrt(1 - ndotv**2), 0.0, ndotv])
+    vdoth = h @ view
+    light = 2 * vdoth[:, None] * h - view
+    pdf = m.ggx_ndf(cos_h, alpha) * cos_h / (4 * np.maximum(vdoth, 1e-12))  # of the light direction
+    value = m.ggx_brdf_cos(light, np.broadcast_to(view, light.shape), np.broadcast_to((0.0, 0.0, 1.0), light.shape),
+                           roughness, np.broadcast_to(f0, light.shape))
+    return np.where((vdoth > 0)[:, None], value / np.maximum(pdf, 1e-30)[:, None], 0.0).mean(axis=0)
 
-    directions, weights = fibonacci_sphere(1_000_000)
+
+def test_directional_albedo_quadrature_agrees_with_a_uniform_one_where_both_resolve_the_lobe():
+    from shaders.quadrature import fibonacci_sphere
+
+    directions, weights = fibonacci_sphere(400_000)
     up = directions[:, 2] > 0
     directions, weights = directions[up], weights[up]
-    normal = np.broadcast_to((0.0, 0.0, 1.0), directions.shape)
-    worst = 0.0
-    for roughness in (0.6, 0.75, 1.0):
+    f0 = np.array([0.0, 0.04, 1.0])
+    for roughness, ndotv in ((0.6, 0.3), (1.0, 1.0), (0.8, 0.05)):
+        view = np.broadcast_to((np.sqrt(1 - ndotv**2), 0.0, ndotv), directions.shape)
+        uniform = weights @ m.ggx_brdf_cos(directions, view, np.broadcast_to((0.0, 0.0, 1.0), directions.shape),
+                                           roughness, np.broadcast_to(f0, directions.shape))
+        # 300 x 300 samples: within 0.004 of it at grazing view (0.0003 at 800 x 800), 1e-4 elsewhere
+        np.testing.assert_allclose(_directional_albedo(roughness, ndotv, f0), uniform, atol=5e-3)
+
+
+def test_split_sum_albedo_matches_quadrature_from_mirror_to_rough_and_grazing():
+    """The specular albedo F0 * scale + bias (sg_shading) that lightmapped materials shade with and that the
+    diffuse of every baked dielectric is layered under, against the quadrature, roughness 0.05..1, n.v to grazing."""
+    from shaders.sg_shading import NumpyOps, split_sum_albedo
+
+    f0 = np.array([0.0, 0.04, 1.0])
+    for roughness in (m.ROUGHNESS_MIN, 0.2, 0.45, 0.6, 0.75, 1.0):
         for ndotv in (m.NDOTV_MIN, 0.05, 0.3, 0.7, 1.0):
-            view = np.broadcast_to((np.sqrt(1 - ndotv**2), 0.0, ndotv), directions.shape)
-            f0 = np.array([0.0, 0.04, 1.0])
-            exact = weights @ m.ggx_brdf_cos(directions, view, normal, roughness, np.broadcast_to(f0, directions.shape))
+            exact = _directional_albedo(roughness, ndotv, f0)
             estimate = split_sum_albedo(NumpyOps(), f0, np.array(roughness), np.array(ndotv))
-            # the fit's bias is within 0.0044, its F0 scale within 0.021 (sg_shading.SPLIT_SUM_*)
-            assert np.all(np.abs(estimate - exact) <= 0.005 + 0.022 * f0), (roughness, ndotv, estimate, exact)
-            worst = max(worst, float(np.abs(estimate - exact)[1]))
-    assert worst < 0.006  # dielectric F0 = 0.04: what the lightmapped materials use
+            error = np.abs(estimate - exact)
+            # the fit's worst off its grid: 0.009 (scale), 0.011 (bias); 0.007 and 0.005 from roughness 0.55
+            assert error.max() < (0.008 if roughness >= 0.6 else 0.02), (roughness, ndotv, estimate, exact)
+            assert error[1] < (0.007 if roughness >= 0.6 else 0.016)  # a dielectric's F0 of 0.04
