@@ -45,7 +45,7 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.lightfield_tiles import (DEFAULT_TILE_MEGAPIXELS, TileIndex, blocks_to_images, images_to_blocks,
                                             parse_share, plan_tiles, preview_mosaic, read_preview_images,
                                             tile_is_finished, write_index)
-    from ..shaders.texel_maps import adjacent_texel_pairs, channels, read_texel_maps
+    from ..shaders.texel_maps import adjacent_texel_pairs, channels, read_texel_maps, texels_of_objects
     from .capture import scene_bvh
     from .scene_analysis import active_scene, remove_datablocks
 except ImportError:  # bpy as a module with the repository on sys.path
@@ -58,7 +58,7 @@ except ImportError:  # bpy as a module with the repository on sys.path
     from shaders.lightfield_tiles import (DEFAULT_TILE_MEGAPIXELS, TileIndex, blocks_to_images, images_to_blocks,
                                           parse_share, plan_tiles, preview_mosaic, read_preview_images,
                                           tile_is_finished, write_index)
-    from shaders.texel_maps import adjacent_texel_pairs, channels, read_texel_maps
+    from shaders.texel_maps import adjacent_texel_pairs, channels, read_texel_maps, texels_of_objects
 
 CAMERA_SHADER = Path(__file__).resolve().parent.parent / "shaders" / "lightfield_camera.osl"
 LAMP_MIN_PIXEL_FRACTION = 0.5  # of an octahedral pixel's angular radius (about 2/R radians)
@@ -350,12 +350,13 @@ def _texel_inputs(atlas, texels):
             channels(atlas, "ray_offset")[r, c].astype(np.float64))
 
 
-def midpoint_pairs(atlas: np.ndarray, count: int, seed: int = MIDPOINT_SEED, object_ids=None) -> np.ndarray:
+def midpoint_pairs(atlas: np.ndarray, count: int, seed: int = MIDPOINT_SEED, texel_info=None,
+                   objects=None) -> np.ndarray:
     """(M, 4) [row, col, row2, col2]: `count` random adjacent valid texels of one object (adjacent_texel_pairs),
-    of the objects `object_ids` (all when None)."""
+    of the named `objects` (all when None; texel_info from read_texel_maps names them)."""
     pairs = adjacent_texel_pairs(atlas)
-    if object_ids is not None:
-        pairs = pairs[np.isin(channels(atlas, "object_id")[pairs[:, 0], pairs[:, 1]].astype(np.int64), object_ids)]
+    if objects is not None:
+        pairs = pairs[texels_of_objects(atlas, texel_info, pairs[:, :2], objects)]
     pick = np.random.default_rng(seed).choice(len(pairs), size=min(count, len(pairs)), replace=False)
     return pairs[np.sort(pick)]
 
@@ -405,8 +406,7 @@ def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: i
     result.texels = len(texels)
     jobs = [("lightfield", texels, _texel_inputs(atlas, texels), 3)]
     if midpoints > 0 and plan.sg_objects:
-        with_sgs = [o["id"] for o in texel_info["objects"] if o["name"] in plan.sg_objects]  # training reads them
-        pairs = midpoint_pairs(atlas, midpoints, object_ids=with_sgs)
+        pairs = midpoint_pairs(atlas, midpoints, texel_info=texel_info, objects=plan.sg_objects)  # what training reads
         jobs.append(("midpoints", pairs, _midpoint_inputs(scene, atlas, pairs), 3))
     iwev_channels = plan.environment.iwev_channels if plan.environment.iwev else 0
     if iwev_channels:

@@ -213,9 +213,8 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
         raise BakeInputError("--device cuda: torch sees no CUDA device here; use --device cpu")
     sg_count = plan.max_sg_count or settings.sg_count or 16
     budget = time_budget_s if time_budget_s is not None else settings.training_budget_s
-    kinds = ["lightfield"] + (["env_visibility"] if plan.environment.iwev else [])
-    if not plan.sg_objects:  # only irradiance lightmaps: apply integrates the light fields, nothing to fit
-        kinds = []
+    # Only irradiance lightmaps (no object with SGs): apply integrates the light fields, nothing to fit.
+    kinds = (["lightfield"] + (["env_visibility"] if plan.environment.iwev else [])) if plan.sg_objects else []
     if encoder not in ("cnn", "fixed_sg", "sh_l2"):
         raise ValueError(f"encoder {encoder!r} is not 'cnn', 'fixed_sg' or 'sh_l2'")
     if encoder == "sh_l2" and plan.environment.iwev:
