@@ -15,6 +15,7 @@ The bake's own evaluation uses reference_samples_for(settings).
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -35,11 +36,11 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.image_metrics import flip, heat, psnr, rmse, tonemap
     from .apply import BAKE_RECORD_KEY, baked_slots
     from ..shaders.exr_io import read_exr
-    from .render import quiet_stdout, render_still
+    from .render import compute_device, quiet_stdout, render_still
     from .scene_analysis import active_scene, empty_node_material, principled_surface
 except ImportError:  # bpy as a module with the repository on sys.path
     from blender_addon.apply import BAKE_RECORD_KEY, baked_slots
-    from blender_addon.render import quiet_stdout, render_still
+    from blender_addon.render import compute_device, quiet_stdout, render_still
     from blender_addon.scene_analysis import active_scene, empty_node_material, principled_surface
     from shaders.exr_io import read_exr
     from shaders.bake_plan import BakeInputError
@@ -245,7 +246,8 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144
         render.resolution_x, render.resolution_y, render.resolution_percentage = *resolution, 100
         render.image_settings.file_format, render.image_settings.color_depth = "OPEN_EXR", "32"
         cycles.use_denoising, cycles.use_adaptive_sampling = False, False
-        with tempfile.TemporaryDirectory(prefix=".sglf-evaluate-", dir=out_dir) as tmp:
+        with (tempfile.TemporaryDirectory(prefix=".sglf-evaluate-", dir=out_dir) as tmp,
+              compute_device(scene, "cuda") if plan.settings.device == "cuda" else contextlib.nullcontext()):
             for k, (camera, _) in enumerate(cameras):
                 ours = _render(scene, camera, Path(tmp) / "ours.exr", test_samples, 0)
                 undo = _swap_to_originals(scene)

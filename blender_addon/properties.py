@@ -13,7 +13,8 @@ PRESET_ITEMS = (
 
 DEVICE_ITEMS = (
     ("CPU", "CPU", "Train and render on the CPU"),
-    ("CUDA", "CUDA / OptiX", "Use an NVIDIA GPU when one is present"),
+    ("CUDA", "CUDA / OptiX", "Render with OptiX and train with CUDA on an NVIDIA GPU; the bake stops with a message "
+                             "when Cycles finds no OptiX device"),
 )
 
 

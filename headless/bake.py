@@ -195,7 +195,8 @@ def stage_summary(stage: str, result, plan) -> tuple[str, list]:
         skipped = sum(result.tiles_skipped.values())
         return (f"{result.texels} texels; tiles rendered: {rendered}"
                 + (f"; {skipped} already finished" if skipped else "")
-                + f"; {result.rays_per_second / 1e6:.2f} M rays/s"), result.warnings
+                + f"; {result.rays_per_second / 1e6:.2f} M rays/s"
+                + (f" on {', '.join(result.devices)}" if result.devices else "")), result.warnings
     if stage == "train":
         metrics = result.metrics if hasattr(result, "metrics") else (result or {}).get("metrics", {})
         lf = metrics.get("lightfield", {})

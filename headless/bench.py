@@ -76,7 +76,7 @@ def bench_capture(scenes, presets, out_root: Path) -> list[dict]:
     return rows
 
 
-def bench_render(out_root: Path, per_texel_subset: int = 24) -> dict:
+def bench_render(out_root: Path, per_texel_subset: int = 24, device: str = "cpu") -> dict:
     import math
     import tempfile
 
@@ -93,7 +93,8 @@ def bench_render(out_root: Path, per_texel_subset: int = 24) -> dict:
     draft = build_plan(scene, BakeSettings.from_preset("draft"))
     density = 4.0 * math.sqrt(4096 / max(draft.texels, 1))
     plan = build_plan(scene, BakeSettings.from_preset("draft", texel_density=round(density, 2),
-                                                      lightfield_resolution=resolution, samples=samples))
+                                                      lightfield_resolution=resolution, samples=samples,
+                                                      device=device))
     out = out_root / "render_room"
     capture(scene, plan, out)
     atlas, _ = read_texel_maps(out)
@@ -131,7 +132,7 @@ def bench_render(out_root: Path, per_texel_subset: int = 24) -> dict:
             timings[name] = time.perf_counter() - start
     court = build_demo_scene("courtyard")
     court_plan = build_plan(court, BakeSettings.from_preset("draft", lightfield_resolution=resolution,
-                                                            samples=samples))
+                                                            samples=samples, device=device))
     court_out = out_root / "render_courtyard"
     capture(court, court_plan, court_out)
     for tile in list((court_out / "lightfield").glob("tile_*.exr")) + list((court_out / "env_visibility").glob("*.exr")):
@@ -139,7 +140,7 @@ def bench_render(out_root: Path, per_texel_subset: int = 24) -> dict:
     court_result = render_stage(court, court_plan, court_out)
     court_lightfield_s = court_result.seconds  # includes the env passes; the ratio below is conservative
     row = {
-        "texels": len(texels), "resolution": resolution, "samples": samples,
+        "devices": atlas_result.devices, "texels": len(texels), "resolution": resolution, "samples": samples,
         "atlas_s": round(atlas_result.seconds, 3), "per_texel_call_s": round(per_texel_s, 4),
         "per_texel_extrapolated_s": round(per_texel_s * len(texels), 1),
         "atlas_speedup": round(per_texel_s * len(texels) / atlas_result.seconds, 1),
@@ -151,8 +152,8 @@ def bench_render(out_root: Path, per_texel_subset: int = 24) -> dict:
         "iwev_post_s": round(court_result.env_post_seconds, 3),
         "iwev_post_share": round(court_result.env_post_seconds / court_lightfield_s, 4),
     }
-    print(f"\nrender (room, {row['texels']} texels, R = {resolution}, {samples} spp; targets: atlas >= 10x, "
-          "IWEV post < 10 %)")
+    print(f"\nrender (room, {row['texels']} texels, R = {resolution}, {samples} spp, on {', '.join(row['devices'])}; "
+          "targets: atlas >= 10x, IWEV post < 10 %)")
     print(f"  atlas render           {row['atlas_s']:>9.2f} s   ({row['camera_rays_per_s'] / 1e6:.2f} M camera rays/s)")
     print(f"  one call per texel     {row['per_texel_extrapolated_s']:>9.1f} s   ({row['per_texel_call_s'] * 1e3:.0f} ms "
           f"x {row['texels']}, measured on {len(subset)})")
@@ -381,7 +382,7 @@ def bench_apply(out_root: Path, sg_counts=(4, 8, 16, 32)) -> list[dict]:
     return rows
 
 
-def bench_presets(out_root: Path, scenes, presets, earlier_rows=()) -> list[dict]:
+def bench_presets(out_root: Path, scenes, presets, earlier_rows=(), device: str = "cpu") -> list[dict]:
     """Each preset end to end (capture .. evaluate, EEVEE included) on each scene: bake time, share of time
     per stage, FLIP overall and per roughness class; a Pareto plot of bake time against FLIP. Rows of earlier
     runs (other scenes or presets, e.g. Production run on its own) are kept unless measured again."""
@@ -390,19 +391,21 @@ def bench_presets(out_root: Path, scenes, presets, earlier_rows=()) -> list[dict
     from blender_addon.demo_scenes import build_demo_scene
     from blender_addon.pipeline import BakeJob
 
-    rows = [r for r in earlier_rows if (r["scene"], r["preset"]) not in {(s, p) for s in scenes for p in presets}]
+    measured = {(s, p, device) for s in scenes for p in presets}
+    rows = [r for r in earlier_rows if (r["scene"], r["preset"], r.get("device", "cpu")) not in measured]
     for name in scenes:
         for preset in presets:
             scene = build_demo_scene(name)
             out = out_root / f"preset_{name}_{preset}"
             start = time.perf_counter()
-            job = BakeJob(scene, BakeSettings.from_preset(preset), out)
+            job = BakeJob(scene, BakeSettings.from_preset(preset, device=device), out)
             job.run()
             total = time.perf_counter() - start
             errors = json.loads((out / "report.json").read_text())["errors"]
             eevee = errors.get("eevee") or {}
             bake_s = sum(v for k, v in job.timings.items() if k != "evaluate")
-            rows.append({"scene": name, "preset": preset, "bake_s": round(bake_s, 1), "total_s": round(total, 1),
+            rows.append({"scene": name, "preset": preset, "device": device,
+                         "bake_s": round(bake_s, 1), "total_s": round(total, 1),
                          "stage_share": {k: round(v / bake_s, 3) for k, v in job.timings.items() if k != "evaluate"},
                          "flip": round(errors["flip"], 4), "psnr_db": round(errors["psnr"], 2),
                          "flip_by_roughness": {k: None if v["flip"] is None else round(v["flip"], 4)
@@ -417,7 +420,7 @@ def bench_presets(out_root: Path, scenes, presets, earlier_rows=()) -> list[dict
             print(f"preset {preset:<10} {name:<10} bake {row['bake_s']:7.1f} s ({shares}); FLIP {row['flip']:.4f} "
                   f"(EEVEE {row['eevee_flip']}), by roughness {row['flip_by_roughness']}, reference noise floor "
                   f"{row['reference_noise_flip_by_roughness']}")
-    rows.sort(key=lambda r: (r["scene"], list(PRESETS).index(r["preset"])))
+    rows.sort(key=lambda r: (r["scene"], r.get("device", "cpu"), list(PRESETS).index(r["preset"])))
     return rows
 
 
@@ -435,9 +438,10 @@ def _plot_pareto(path: Path, rows: list, encoder_rows=()):
               ("glossy, 0.3 <= roughness < 0.6", lambda r: r["flip_by_roughness"].get("0.3 <= roughness < 0.6")))
     figure, axes = plt.subplots(1, len(panels), figsize=(15, 4))
     for ax, (title, value) in zip(axes, panels):
-        for name in sorted({r["scene"] for r in rows}):
-            mine = [r for r in rows if r["scene"] == name and value(r) is not None]
-            ax.plot([r["bake_s"] for r in mine], [value(r) for r in mine], "o-", label=name)
+        for name, device in sorted({(r["scene"], r.get("device", "cpu")) for r in rows}):
+            mine = [r for r in rows if (r["scene"], r.get("device", "cpu")) == (name, device) and value(r) is not None]
+            ax.plot([r["bake_s"] for r in mine], [value(r) for r in mine], "o-" if device == "cpu" else "o--",
+                    label=name if device == "cpu" else f"{name}, OptiX + CUDA")
             for r in mine:
                 ax.annotate(r["preset"], (r["bake_s"], value(r)), fontsize=7)
         for r in (r for r in encoder_rows if r.get("bake_s") and value(r) is not None):
@@ -666,6 +670,9 @@ def main(argv=None) -> int:
     p.add_argument("--scenes", help="presets section: comma-separated demo scenes (default spheres,room,courtyard)")
     p.add_argument("--presets", help="presets section: comma-separated presets (default all); rows of other "
                    "scenes and presets already in OUT/bench.json are kept")
+    p.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
+                   help="render and presets sections: Cycles (and the training) on the CPU or on OptiX GPUs and CUDA "
+                   "(the render section's numbers are kept apart in bench.json as render_cuda)")
     ns = p.parse_args(argv)
     sections = [s for s in ns.sections.split(",") if s]
     unknown = set(sections) - set(SECTIONS)
@@ -678,7 +685,7 @@ def main(argv=None) -> int:
     if "capture" in sections:
         results["capture"] = bench_capture(scenes, presets, ns.out)
     if "render" in sections:
-        results["render"] = bench_render(ns.out)
+        results["render" if ns.device == "cpu" else "render_cuda"] = bench_render(ns.out, device=ns.device)
     if "train" in sections:
         results["train"] = [bench_train(ns.out, "spheres", budget_s=30.0 if ns.quick else 120.0)]
         if not ns.quick:
@@ -700,7 +707,7 @@ def main(argv=None) -> int:
     if set(preset_scenes) - {"spheres", "room", "courtyard"} or set(preset_names) - set(PRESETS):
         p.error(f"--scenes takes spheres, room, courtyard and --presets {', '.join(PRESETS)}")
     if "presets" in sections:
-        results["presets"] = bench_presets(ns.out, preset_scenes, preset_names, earlier.get("presets", ()))
+        results["presets"] = bench_presets(ns.out, preset_scenes, preset_names, earlier.get("presets", ()), ns.device)
     if "stability" in sections:
         results["stability"] = bench_stability(ns.out)
     if "hair" in sections:

@@ -52,6 +52,9 @@ def write_report_html(out_dir) -> Path:
     rows = [("texels", report.get("texels")), ("coverage %", report.get("coverage_percent")),
             ("pushed-out texels", report.get("pushed_out_texels")), ("buried texels", report.get("buried_texels")),
             ("SGs per texel", report.get("sg_count")), ("bytes per texel", report.get("bytes_per_texel"))]
+    render = report.get("render", {})
+    if render.get("devices"):
+        rows.append(("rendered on", ", ".join(render["devices"])))
     apply = report.get("apply", {})
     if apply.get("node_groups"):
         rows.append(("node groups (nodes)", ", ".join(f"{k}: {v}" for k, v in apply["node_groups"].items())))

@@ -176,6 +176,22 @@ def test_cli_bad_input_is_one_line_and_nonzero(tmp_path, args, message):
     assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0]
 
 
+def test_cli_device_cuda_without_an_optix_gpu_stops_with_one_error_line(tmp_path):
+    import bpy
+
+    preferences = bpy.context.preferences.addons["cycles"].preferences
+    preferences.refresh_devices()
+    if any(entry.type == "OPTIX" for entry in preferences.devices):
+        pytest.skip("an OptiX GPU is here")
+    out = _bake("--scene", "demo:spheres", "--out", str(tmp_path / "o"), "--device", "cuda", "--texel-density", "1",
+                "--stages", "capture,render")
+    assert out.returncode == 1
+    errors = [line for line in out.stderr.splitlines() if line.startswith("error")]
+    assert errors == [out.stderr.strip().splitlines()[-1]]
+    assert "no OptiX GPU" in errors[0] and "--device cpu" in errors[0]
+    assert not list((tmp_path / "o").glob("lightfield/tile_*.exr"))
+
+
 def test_cli_empty_blend_is_one_line_and_nonzero(tmp_path):
     empty = tmp_path / "empty.blend"
     code = ("import bpy; bpy.ops.wm.read_factory_settings(use_empty=True); "

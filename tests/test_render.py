@@ -7,9 +7,9 @@ import pytest
 from mathutils import Matrix
 
 from blender_addon.capture import capture
-from blender_addon.render import MIDPOINT_SAMPLES_FACTOR, render_stage
+from blender_addon.render import GPU_BACKEND, MIDPOINT_SAMPLES_FACTOR, render_stage
 from blender_addon.scene_analysis import build_plan, enable_nodes
-from shaders.bake_plan import BakeCancelled, BakeSettings
+from shaders.bake_plan import BakeCancelled, BakeInputError, BakeSettings
 from shaders.env_visibility import above_horizon_fraction
 from shaders.lightfield_tiles import read_images, read_index
 from shaders.octahedral import direction_to_pixel, pixel_directions
@@ -39,9 +39,15 @@ def _world(scene, color):
     scene.world = world
 
 
-def _bake(scene, out, resolution=16, samples=4, density=2.0, **kwargs):
+def _optix_gpus():
+    preferences = bpy.context.preferences.addons["cycles"].preferences
+    preferences.refresh_devices()
+    return [entry.name for entry in preferences.devices if entry.type == GPU_BACKEND]
+
+
+def _bake(scene, out, resolution=16, samples=4, density=2.0, device="cpu", **kwargs):
     plan = build_plan(scene, BakeSettings.from_preset("draft", lightfield_resolution=resolution, samples=samples,
-                                                      texel_density=density))
+                                                      texel_density=density, device=device))
     capture(scene, plan, out)
     result = render_stage(scene, plan, out, **kwargs)
     atlas, _ = read_texel_maps(out)
@@ -53,7 +59,10 @@ def _texel_data(atlas, texels):
     return channels(atlas, "P.X", 3)[r, c].astype(float), channels(atlas, "Ng.X", 3)[r, c].astype(float)
 
 
-def test_probe_emitters_land_on_the_predicted_pixels_for_all_six_faces_of_a_box(tmp_path):
+@pytest.mark.parametrize("device", ["cpu", "cuda"])
+def test_probe_emitters_land_on_the_predicted_pixels_for_all_six_faces_of_a_box(tmp_path, device):
+    if device == "cuda" and not _optix_gpus():
+        pytest.skip("no OptiX GPU here (the CPU case runs; the device check ran this on an H100)")
     resolution = 16
     grid = pixel_directions(resolution)
     probes = [grid[4, 11], -grid[4, 11]]  # a pixel centre and its antipode: every face sees exactly one
@@ -63,7 +72,7 @@ def test_probe_emitters_land_on_the_predicted_pixels_for_all_six_faces_of_a_box(
         objects[-1].location = 40.0 * d
     scene = scene_with(*objects)
     _world(scene, (0, 0, 0))
-    plan, result, atlas = _bake(scene, tmp_path, resolution=resolution, samples=4, density=4.0)
+    plan, result, atlas = _bake(scene, tmp_path, resolution=resolution, samples=4, density=4.0, device=device)
     texels, images = read_images(tmp_path / "lightfield", plan.stage_hash("render"))
     positions, normals = _texel_data(atlas, texels)
     faces = set()
@@ -78,14 +87,18 @@ def test_probe_emitters_land_on_the_predicted_pixels_for_all_six_faces_of_a_box(
     assert len(faces) == 6
 
 
-def test_energy_inside_an_emitting_sphere_and_nothing_below_the_horizon(tmp_path):
+@pytest.mark.parametrize("device", ["cpu", "cuda"])
+def test_energy_inside_an_emitting_sphere_and_nothing_below_the_horizon(tmp_path, device):
+    if device == "cuda" and not _optix_gpus():
+        pytest.skip("no OptiX GPU here (the CPU case runs; the device check ran this on an H100)")
     radiance = 2.5
     shell = mesh_object("Shell", uv_sphere(6.0, 32, 16), _emissive("shell", radiance))
     floor = mesh_object("Disc", lambda bm: bmesh.ops.create_grid(bm, x_segments=1, y_segments=1, size=0.5),
                         material("glossy", 0.2))
     scene = scene_with(shell, floor)
     _world(scene, (0, 0, 0))
-    plan, result, atlas = _bake(scene, tmp_path, resolution=16, samples=4, density=4.0, midpoints=6)
+    plan, result, atlas = _bake(scene, tmp_path, resolution=16, samples=4, density=4.0, midpoints=6, device=device)
+    assert result.devices == (["CPU"] if device == "cpu" else _optix_gpus())
     texels, images = read_images(tmp_path / "lightfield", plan.stage_hash("render"))
     _, normals = _texel_data(atlas, texels)
     fraction = above_horizon_fraction(normals, 16).reshape(-1, 16, 16)
@@ -99,6 +112,22 @@ def test_energy_inside_an_emitting_sphere_and_nothing_below_the_horizon(tmp_path
     assert np.all(images[none] == 0.0)
     partial = ~full & ~none  # straddling the horizon: the cut keeps the same fraction (noisy at 4 spp)
     assert images[partial].mean() == pytest.approx(radiance * fraction[partial].mean(), rel=0.05)
+
+
+def test_device_cuda_without_an_optix_gpu_is_one_clear_error_and_changes_no_setting(tmp_path):
+    if _optix_gpus():
+        pytest.skip("an OptiX GPU is here")
+    floor = mesh_object("Disc", lambda bm: bmesh.ops.create_grid(bm, x_segments=1, y_segments=1, size=0.5),
+                        material("glossy", 0.2))
+    scene = scene_with(floor)
+    preferences = bpy.context.preferences.addons["cycles"].preferences
+    backend_before, device_before = preferences.compute_device_type, scene.cycles.device
+    datablocks_before = {name: len(getattr(bpy.data, name)) for name in ("scenes", "cameras", "materials", "worlds",
+                                                                           "texts", "lights", "objects")}
+    with pytest.raises(BakeInputError, match="no OptiX GPU.*--device cpu"):
+        _bake(scene, tmp_path, device="cuda")
+    assert preferences.compute_device_type == backend_before and scene.cycles.device == device_before
+    assert {name: len(getattr(bpy.data, name)) for name in datablocks_before} == datablocks_before
 
 
 def test_a_bake_leaves_nothing_in_the_temp_directory(tmp_path, monkeypatch):
