@@ -71,6 +71,13 @@ TEMP_PREFIX = "SGLF render"
 GPU_BACKEND = "OPTIX"  # the light-field camera is a custom OSL camera: Cycles runs those on the CPU and OptiX only
 
 
+def optix_devices() -> list:
+    """Cycles' OptiX device entries on this machine, from a refreshed device list."""
+    preferences = bpy.context.preferences.addons["cycles"].preferences
+    preferences.refresh_devices()
+    return [entry for entry in preferences.get_devices_for_type(GPU_BACKEND) if entry.type == GPU_BACKEND]
+
+
 @contextlib.contextmanager
 def compute_device(scene, device: str):
     """Render `scene` with Cycles on the CPU, or for 'cuda' on every OptiX GPU Cycles finds. Setting the scene to
@@ -87,8 +94,7 @@ def compute_device(scene, device: str):
             cycles.device = previous_device
         return
     preferences = bpy.context.preferences.addons["cycles"].preferences
-    preferences.refresh_devices()
-    gpus = [entry for entry in preferences.get_devices_for_type(GPU_BACKEND) if entry.type == GPU_BACKEND]
+    gpus = optix_devices()
     if not gpus:
         raise BakeInputError("--device cuda: Cycles finds no OptiX GPU here (the light-field camera is an OSL camera, "
                              "which Cycles runs on the CPU and OptiX only); use --device cpu")

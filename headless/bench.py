@@ -392,7 +392,7 @@ def bench_presets(out_root: Path, scenes, presets, earlier_rows=(), device: str 
     from blender_addon.pipeline import BakeJob
 
     measured = {(s, p, device) for s in scenes for p in presets}
-    rows = [r for r in earlier_rows if (r["scene"], r["preset"], r.get("device", "cpu")) not in measured]
+    rows = [r for r in earlier_rows if (r["scene"], r["preset"], _device_of(r)) not in measured]
     for name in scenes:
         for preset in presets:
             scene = build_demo_scene(name)
@@ -420,8 +420,12 @@ def bench_presets(out_root: Path, scenes, presets, earlier_rows=(), device: str 
             print(f"preset {preset:<10} {name:<10} bake {row['bake_s']:7.1f} s ({shares}); FLIP {row['flip']:.4f} "
                   f"(EEVEE {row['eevee_flip']}), by roughness {row['flip_by_roughness']}, reference noise floor "
                   f"{row['reference_noise_flip_by_roughness']}")
-    rows.sort(key=lambda r: (r["scene"], r.get("device", "cpu"), list(PRESETS).index(r["preset"])))
+    rows.sort(key=lambda r: (r["scene"], _device_of(r), list(PRESETS).index(r["preset"])))
     return rows
+
+
+def _device_of(row: dict) -> str:
+    return row.get("device", "cpu")  # rows written before the --device option were all on the CPU
 
 
 def _plot_pareto(path: Path, rows: list, encoder_rows=()):
@@ -438,8 +442,8 @@ def _plot_pareto(path: Path, rows: list, encoder_rows=()):
               ("glossy, 0.3 <= roughness < 0.6", lambda r: r["flip_by_roughness"].get("0.3 <= roughness < 0.6")))
     figure, axes = plt.subplots(1, len(panels), figsize=(15, 4))
     for ax, (title, value) in zip(axes, panels):
-        for name, device in sorted({(r["scene"], r.get("device", "cpu")) for r in rows}):
-            mine = [r for r in rows if (r["scene"], r.get("device", "cpu")) == (name, device) and value(r) is not None]
+        for name, device in sorted({(r["scene"], _device_of(r)) for r in rows}):
+            mine = [r for r in rows if (r["scene"], _device_of(r)) == (name, device) and value(r) is not None]
             ax.plot([r["bake_s"] for r in mine], [value(r) for r in mine], "o-" if device == "cpu" else "o--",
                     label=name if device == "cpu" else f"{name}, OptiX + CUDA")
             for r in mine:

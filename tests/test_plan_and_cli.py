@@ -177,11 +177,9 @@ def test_cli_bad_input_is_one_line_and_nonzero(tmp_path, args, message):
 
 
 def test_cli_device_cuda_without_an_optix_gpu_stops_with_one_error_line(tmp_path):
-    import bpy
+    from blender_addon.render import optix_devices
 
-    preferences = bpy.context.preferences.addons["cycles"].preferences
-    preferences.refresh_devices()
-    if any(entry.type == "OPTIX" for entry in preferences.devices):
+    if optix_devices():
         pytest.skip("an OptiX GPU is here")
     out = _bake("--scene", "demo:spheres", "--out", str(tmp_path / "o"), "--device", "cuda", "--texel-density", "1",
                 "--stages", "capture,render")

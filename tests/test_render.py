@@ -7,7 +7,7 @@ import pytest
 from mathutils import Matrix
 
 from blender_addon.capture import capture
-from blender_addon.render import GPU_BACKEND, MIDPOINT_SAMPLES_FACTOR, render_stage
+from blender_addon.render import MIDPOINT_SAMPLES_FACTOR, optix_devices, render_stage
 from blender_addon.scene_analysis import build_plan, enable_nodes
 from shaders.bake_plan import BakeCancelled, BakeInputError, BakeSettings
 from shaders.env_visibility import above_horizon_fraction
@@ -40,9 +40,7 @@ def _world(scene, color):
 
 
 def _optix_gpus():
-    preferences = bpy.context.preferences.addons["cycles"].preferences
-    preferences.refresh_devices()
-    return [entry.name for entry in preferences.devices if entry.type == GPU_BACKEND]
+    return [entry.name for entry in optix_devices()]
 
 
 def _bake(scene, out, resolution=16, samples=4, density=2.0, device="cpu", **kwargs):
