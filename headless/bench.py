@@ -24,7 +24,8 @@ writes them to bench_out/bench.json.
   sgcount   how many SGs a material needs, by roughness: the CNN at N = 2..16 on spheres and room, error of the
             reflected radiance; the measured rule behind shaders/bake_plan.py SG_COUNT_BY_ROUGHNESS; sg_count.png.
   encoders  free SGs against fixed SG12 and L2 SH (each baked, applied, evaluated) at equal bytes per texel, on spheres:
-            RMSE and FLIP on glossy pixels, reflected-radiance error per roughness. Target: >= 2x lower RMSE.
+            RMSE and FLIP on glossy pixels (and per roughness class), reflected-radiance error of each sphere's
+            texels at its roughness. Target: >= 2x lower RMSE.
   stability the numerical-stability sweep: `spheres` at roughness 0 and 1, a 1e5 emitter, no light, scale 1e4 and
             1e-3, each baked and evaluated: every output finite, and the errors.
   hair      the hair filter (headless/bench_hair.py): onnxruntime time at 1024^2, PSNR/FLIP against Cycles
@@ -473,11 +474,19 @@ def _over_glossy(classes: dict, key: str = "flip") -> float:
     return sum(classes[k][key] * classes[k]["pixels"] for k in names) / total
 
 
-def bench_encoders(out_root: Path, budget_s: float = 60.0) -> list[dict]:
+def _mean_value(by_key: dict) -> float:
+    return sum(by_key.values()) / max(len(by_key), 1)
+
+
+def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 16, samples: int = 32,
+                   reference_samples: int = 128) -> list[dict]:
     """The free SGs against the production lightmappers' encodings at equal bytes per texel, on `spheres`: CNN with
     5 SGs (70 B) against fixed SG12 by NNLS (72 B), and CNN with 4 SGs (56 B) against L2 SH (54 B, shaded by the
     SH variant of the node group); each baked, applied and evaluated against Cycles (RMSE and FLIP on glossy
-    pixels), plus the numpy error of the reflected radiance per texel (glossy_error, the spheres' roughnesses)."""
+    pixels), plus the numpy error of the reflected radiance per material (glossy_error of its texels at its
+    roughness, against the rendered light fields; the floor is an irradiance lightmap and has no SGs). The light
+    fields are Draft's (R = 16, 32 spp) unless given; docs/design-additions.md §18 has the ratios at R = 32 and
+    at 128 spp."""
     import numpy as np
 
     from blender_addon.apply import apply_stage, remove_bake
@@ -488,21 +497,23 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0) -> list[dict]:
     from blender_addon.scene_analysis import build_plan
     from shaders.lightfield_tiles import read_images
     from shaders.sg_textures import read_sg_texture, read_sh_texture
-    from shaders.texel_maps import channels, read_texel_maps
+    from shaders.texel_maps import channels, read_texel_maps, texels_of_objects
     from training.baselines import eval_sh
     from training.sg_fit import glossy_error, reconstruct
-    from training.train_stage import train_stage
+    from training.train_stage import texel_roughness, train_stage
 
-    roughnesses = (0.2, 0.3, 0.4, 0.5)  # the spheres'
     rows = []
 
-    def reflected_errors(prediction, images, normals):  # glossy_error cuts the prediction at the horizon itself
-        return [round(glossy_error(prediction, images, normals, r), 4) for r in roughnesses]
+    def reflected_errors(prediction, images, normals, roughness) -> dict:
+        """Roughness -> glossy_error of that material's texels (it cuts the prediction at the horizon itself)."""
+        return {f"{value:g}": round(glossy_error(prediction[roughness == value], images[roughness == value],
+                                                 normals[roughness == value], value), 4)
+                for value in np.unique(roughness)}
 
     for name, sg_count, encoder in (("free SG5 (CNN)", 5, "cnn"), ("fixed SG12 (NNLS)", 5, "fixed_sg"),
                                     ("free SG4 (CNN)", 4, "cnn"), ("SH L2 (least squares)", 4, "sh_l2")):
         scene = build_demo_scene("spheres")
-        plan = build_plan(scene, BakeSettings.from_preset("draft", lightfield_resolution=16, samples=32,
+        plan = build_plan(scene, BakeSettings.from_preset("draft", lightfield_resolution=resolution, samples=samples,
                                                           sg_count=sg_count, uniform_sg_count=True,
                                                           training_budget_s=budget_s))
         out = out_root / f"encoders_{encoder}{sg_count}"
@@ -512,12 +523,15 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0) -> list[dict]:
         trained = train_stage(out, plan, encoder=encoder)
         apply_stage(scene, plan, out)
         bake_s = time.perf_counter() - start
-        errors = evaluate_stage(scene, plan, out, views=2, with_eevee=False)
+        errors = evaluate_stage(scene, plan, out, views=2, with_eevee=False, reference_samples=reference_samples)
         remove_bake(scene)
         classes = errors["flip_by_roughness"]
-        atlas, _ = read_texel_maps(out)
+        atlas, texel_info = read_texel_maps(out)
         texels, images = read_images(out / "lightfield")
+        with_sgs = texels_of_objects(atlas, texel_info, texels, plan.sg_objects)  # the floor is a lightmap, no SGs
+        texels, images = texels[with_sgs], images[with_sgs]
         normals = channels(atlas, "Ng.X", 3)[texels[:, 0], texels[:, 1]].astype(np.float64)
+        roughness = texel_roughness(atlas, texel_info, texels, plan)
         r, c = texels[:, 0], texels[:, 1]
         if encoder == "sh_l2":
             prediction = eval_sh(read_sh_texture(out / "sg_lightfield.exr")[0][r, c], images.shape[1])
@@ -527,22 +541,30 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0) -> list[dict]:
         rows.append({"encoder": name, "bytes_per_texel": trained.bytes_per_texel,
                      "glossy_rmse": round(_over_glossy(classes, "rmse"), 4),
                      "glossy_flip": round(_over_glossy(classes, "flip"), 4),
-                     "flip": round(errors["flip"], 4), "reflected_error": reflected_errors(prediction, images, normals),
+                     "flip": round(errors["flip"], 4),
+                     "reflected_error": reflected_errors(prediction, images, normals, roughness),
                      "fit_s": round(trained.seconds, 1), "bake_s": round(bake_s, 1),
                      "flip_by_roughness": {k: None if v["flip"] is None else round(v["flip"], 4)
+                                           for k, v in classes.items()},
+                     "rmse_by_roughness": {k: None if v["rmse"] is None else round(v["rmse"], 4)
                                            for k, v in classes.items()}})
-    print(f"\nencoders at equal bytes (spheres, R = 16, 32 spp; CNN {budget_s:g} s); reflected radiance error at "
-          f"roughness {', '.join(map(str, roughnesses))}")
+    print(f"\nencoders at equal bytes (spheres, R = {resolution}, {samples} spp; CNN {budget_s:g} s; "
+          f"{reference_samples}-spp references); reflected radiance error against the rendered light fields, "
+          "per sphere's roughness")
     print(f"  {'encoder':<24} {'bytes':>5} {'glossy RMSE':>11} {'glossy FLIP':>11} {'FLIP':>7}  reflected error")
     for r in rows:
+        reflected = ", ".join(f"{k}: {v:.3f}" for k, v in r["reflected_error"].items())
         print(f"  {r['encoder']:<24} {r['bytes_per_texel']:>5} {r['glossy_rmse']:>11.4f} {r['glossy_flip']:>11.4f} "
-              f"{r['flip']:>7.4f}  {r['reflected_error']}")
+              f"{r['flip']:>7.4f}  {reflected}")
     free5, sg12, free4, sh = rows
     for baseline, free in ((sg12, free5), (sh, free4)):
+        by_class = ", ".join(f"{name} {baseline['rmse_by_roughness'][name] / rmse:.2f}"
+                             for name, rmse in free["rmse_by_roughness"].items()
+                             if rmse and not name.startswith("roughness >="))
         ratio = baseline["glossy_rmse"] / free["glossy_rmse"]
         print(f"  {baseline['encoder']} / {free['encoder']}: glossy RMSE {ratio:.2f} "
-              f"(target >= 2), glossy FLIP {baseline['glossy_flip'] / free['glossy_flip']:.2f}, reflected error "
-              f"{np.mean(baseline['reflected_error']) / np.mean(free['reflected_error']):.2f}")
+              f"(target >= 2; by class: {by_class}), glossy FLIP {baseline['glossy_flip'] / free['glossy_flip']:.2f}, "
+              f"reflected error {_mean_value(baseline['reflected_error']) / _mean_value(free['reflected_error']):.2f}")
     return rows
 
 
