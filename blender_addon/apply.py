@@ -84,14 +84,15 @@ def build_packed_image(out_dir: Path, plan) -> tuple[SGTextureLayout, Path, dict
         n = int(meta["sg_count"])
     texels, images = read_images(out_dir / "lightfield", plan.stage_hash("render"))
     shading = channels(atlas, "N.X", 3)[texels[:, 0], texels[:, 1]].astype(np.float64)
-    irradiance = irradiance_from_lightfields(images, shading)
+    irradiance = encoded_irradiance = irradiance_from_lightfields(images, shading)
     if plan.environment.iwev:  # the light field leaves the sky to IWEV; diffuse still needs its light
         sky_texels, sky = read_images(out_dir / "env_occluded", plan.stage_hash("render"))
         if not np.array_equal(sky_texels, texels):
             raise BakeInputError(f"{out_dir}: env_occluded and lightfield texels differ; render again")
         irradiance = irradiance + irradiance_from_lightfields(sky, shading)
-    lightmap = smooth_over_texels(atlas, texels, irradiance)  # the encodings below are measured against the exact one
-    # How far the encoding's own irradiance is from the exact one, on the texels that have an encoding.
+    lightmap = smooth_over_texels(atlas, texels, irradiance)  # for the diffuse; the check below uses the unsmoothed
+    # How far the encoding's own irradiance is from that of what it encodes (with IWEV, the light field without
+    # the sky), on the texels that have an encoding.
     with_sgs = texels_of_objects(atlas, texel_info, texels, plan.sg_objects)
     r, c = texels[with_sgs, 0], texels[with_sgs, 1]
     if sh:  # Funk-Hecke with the clamped cosine: band l scaled by its Legendre coefficient
@@ -103,9 +104,9 @@ def build_packed_image(out_dir: Path, plan) -> tuple[SGTextureLayout, Path, dict
                                       amplitude[r, c].astype(np.float64), shading[with_sgs, None, :]).sum(axis=1)
     else:
         from_encoding = np.zeros((0, irradiance.shape[1]))
-    exact = irradiance[with_sgs].sum(axis=1)
+    exact = encoded_irradiance[with_sgs].sum(axis=1)
     lit = exact > 1e-6 * max(exact.max(initial=0.0), 1e-30)
-    rel = np.abs(from_encoding - irradiance[with_sgs]).sum(axis=1)[lit] / exact[lit]
+    rel = np.abs(from_encoding - encoded_irradiance[with_sgs]).sum(axis=1)[lit] / exact[lit]
     iwev_count, env_sgs, tiles = 0, [], {}
     if plan.environment.iwev:
         w_axis, w_sharpness, w_amplitude, w_meta = read_sg_texture(sg_texture_path(out_dir, "env_visibility"),

@@ -499,6 +499,40 @@ def test_sh_baseline_bakes_applies_and_shades_through_its_own_group(tmp_path):
 
 
 
+def test_with_environment_visibility_the_sg_irradiance_is_checked_against_what_the_sgs_encode(tmp_path):
+    """With IWEV the light field leaves the sky to IWEV, and the irradiance tile adds the sky back. The apply stage's
+    check of the SGs' own irradiance compared them with that sky-lit total, and reported a median error of 0.98 on
+    the courtyard; it must compare them with the light field they encode."""
+    from blender_addon.apply import build_packed_image, irradiance_from_lightfields
+    from blender_addon.scene_analysis import enable_nodes
+    from shaders.lightfield_tiles import read_images
+    from shaders.texel_maps import channels, read_texel_maps
+    from training.train_stage import train_stage
+
+    ball = mesh_object("Ball", uv_sphere(1.0), material("glossy", 0.3, metallic=1.0))
+    ball.location = (0.0, 0.0, 1.0)
+    lamp = bpy.data.objects.new("IWEV lamp", bpy.data.lights.new("IWEV lamp", "AREA"))
+    lamp.data.energy, lamp.data.size, lamp.location = 60.0, 4.0, (0.5, -1.0, 3.5)  # a broad lamp the SGs can hold
+    scene = scene_with(ball, lamp)
+    world = bpy.data.worlds.new("IWEV sky")
+    enable_nodes(world)
+    world.node_tree.nodes["Background"].inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
+    scene.world = world
+    plan = build_plan(scene, BakeSettings.from_preset("draft", texel_density=4.0, lightfield_resolution=8, samples=8))
+    assert plan.environment.iwev
+    capture(scene, plan, tmp_path)
+    render_stage(scene, plan, tmp_path)
+    train_stage(tmp_path, plan, time_budget_s=10.0)
+    _, _, measured, _ = build_packed_image(tmp_path, plan)
+    atlas, _ = read_texel_maps(tmp_path)
+    texels, lightfield = read_images(tmp_path / "lightfield")
+    _, sky = read_images(tmp_path / "env_occluded")
+    normals = channels(atlas, "N.X", 3)[texels[:, 0], texels[:, 1]]
+    # The sky is most of the light here, so a comparison with the total would be off by well over half.
+    assert irradiance_from_lightfields(sky, normals).sum() > 2 * irradiance_from_lightfields(lightfield, normals).sum()
+    assert measured["irradiance_from_sgs_rel_error_median"] < 0.5  # 0.24 measured; the sky-lit total gave 1.0
+
+
 def test_eevee_shader_failures_are_read_from_the_render_log():
     """EEVEE draws a material whose shader fails to compile in magenta and goes on; the evaluate stage names it.
     The log is what Blender 5.0.1 printed for the baked courtyard (docs/design-additions.md §13)."""
