@@ -164,8 +164,8 @@ def _load_image(path: Path, pack: bool):
 
 
 def _baked_material(original, groups, surface: dict):
-    """The baked copy of `original`: the lightmap UV into the atlas, and per renderer ('EEVEE', 'CYCLES') its node
-    group's Total as emission into a Material Output for that renderer."""
+    """The baked copy of `original`: the lightmap UV into the atlas, and per renderer ('EEVEE', 'CYCLES', or 'ALL'
+    for one group both use) its node group's Total as emission into a Material Output for that renderer."""
     name = original.name + COPY_SUFFIX
     material = bpy.data.materials.get(name)
     if material is None or material.get(COPY_KEY) != original.name:
@@ -233,8 +233,10 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
         return min(planned, layout.sg_count) if layout.sg_count == plan.max_sg_count else layout.sg_count
 
     def group_for(planned: int) -> dict:
-        """EEVEE's group fits its uniform block; Cycles gets the same shading in fewer, faster nodes. A planned
-        count of 0 (an irradiance lightmap) reads only the irradiance tile, whatever the encoder."""
+        """EEVEE's group fits its uniform block; Cycles gets the same shading in fewer, faster nodes, except with
+        IWEV: EEVEE processes a material's Cycles graph too, about 5 CPU-minutes per courtyard material against 6 s
+        without it (docs/design-additions.md §18), so both renderers share EEVEE's. A planned count of 0 (an
+        irradiance lightmap) reads only the irradiance tile, whatever the encoder."""
         count = evaluated_count(planned) if planned else None
         if count not in groups:
             if count is None:
@@ -246,8 +248,12 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
                 fewer = SGTextureLayout(count, min(count, layout.iwev_count), layout.has_irradiance, layout.atlas_size,
                                         tiles=layout.tiles)  # the same tiles: only the first `count` SGs are read
                 name = GROUP_NAME if count == layout.sg_count else f"{GROUP_NAME} ({count} SGs)"
-            groups[count] = {"EEVEE": build_node_group(image, fewer, env_sgs, name),
-                             "CYCLES": build_node_group(image, fewer, env_sgs, name + CYCLES_SUFFIX, for_cycles=True)}
+            eevee = build_node_group(image, fewer, env_sgs, name)
+            if count and fewer.iwev_count:  # EEVEE would spend minutes per material on a Cycles graph beside it
+                groups[count] = {"ALL": eevee}
+            else:
+                cycles = build_node_group(image, fewer, env_sgs, name + CYCLES_SUFFIX, for_cycles=True)
+                groups[count] = {"EEVEE": eevee, "CYCLES": cycles}
         return groups[count]
 
     record = json.loads(scene.get(BAKE_RECORD_KEY, "{}"))
@@ -281,7 +287,8 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
                 for name, size in uniform_bytes.items() if size > UNIFORM_BLOCK_LIMIT]
     seconds = time.perf_counter() - start
     sg_counts = {m.name: evaluated_count(m.sg_count) for o in plan.baked_objects for m in o.materials if m.glossy}
-    most = groups.get(layout.sg_count, groups.get(None, {})).get("EEVEE")
+    largest = groups.get(layout.sg_count, groups.get(None, {}))
+    most = largest.get("EEVEE", largest.get("ALL"))
     info = {"materials": sorted(baked_materials), "node_group": most.name if most else None,
             "nodes": flattened_node_count(most) if most else 0,  # nested groups expanded, as renderers compile it
             "node_groups": {g.name: flattened_node_count(g) for pair in groups.values() for g in pair.values()},
