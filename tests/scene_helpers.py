@@ -45,6 +45,15 @@ def scene_with(*objects, name="test scene"):
     return scene
 
 
+def uniform_world(scene, color, name="test world"):
+    """Give `scene` a new world of one background colour (RGB)."""
+    world = bpy.data.worlds.new(name)
+    enable_nodes(world)
+    world.node_tree.nodes["Background"].inputs["Color"].default_value = (*color, 1)
+    scene.world = world
+    return world
+
+
 def cube(size=1.0):
     return lambda bm: bmesh.ops.create_cube(bm, size=size, calc_uvs=True)
 

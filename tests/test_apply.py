@@ -18,7 +18,7 @@ from shaders.exr_io import read_exr, write_exr
 from shaders.node_group import GROUP_NAME, SGTextureLayout, build_node_group, flattened_node_count
 from shaders.sg_shading import NumpyOps, encode_sharpness, shade
 from shaders.sg_textures import pack_tiles
-from tests.scene_helpers import material, mesh_fingerprint, mesh_object, scene_with, uv_sphere
+from tests.scene_helpers import material, mesh_fingerprint, mesh_object, scene_with, uniform_world, uv_sphere
 from training.train_stage import ENV_SG_COUNT
 
 pytestmark = pytest.mark.slow
@@ -177,14 +177,11 @@ def test_layered_diffuse_and_split_sum_specular_match_principled_in_a_white_furn
     their irradiance (pi) without SGs: the specular's split-sum albedo and the diffuse layered under it, per n.v.
     A black base shows the specular alone; a grey one the layering, which leaving out costs 0.8 A (2 % to 12 % here)."""
     from blender_addon.render import render_still
-    from blender_addon.scene_analysis import enable_nodes, principled_surface
+    from blender_addon.scene_analysis import principled_surface
 
     cases = [(roughness, base) for roughness in (0.25, 0.9) for base in (0.0, 0.8)]
     scene = bpy.data.scenes.new("white furnace")
-    world = bpy.data.worlds.new("white")
-    enable_nodes(world)
-    world.node_tree.nodes["Background"].inputs["Color"].default_value = (1, 1, 1, 1)
-    scene.world = world
+    uniform_world(scene, (1, 1, 1), "white")
     for i, (roughness, base) in enumerate(cases):
         mat = material(f"Furnace {i}", roughness)
         mat.node_tree.nodes["Principled BSDF"].inputs["Base Color"].default_value = (base, base, base, 1)
@@ -505,7 +502,6 @@ def test_with_environment_visibility_one_graph_shades_both_renderers_and_the_sg_
     the courtyard; it must compare them with the light field they encode. And EEVEE spent minutes per courtyard
     material on the Cycles graph beside its own, so with IWEV one graph feeds one output both renderers use."""
     from blender_addon.apply import irradiance_from_lightfields
-    from blender_addon.scene_analysis import enable_nodes
     from shaders.lightfield_tiles import read_images
     from shaders.texel_maps import channels, read_texel_maps
     from training.train_stage import train_stage
@@ -515,10 +511,7 @@ def test_with_environment_visibility_one_graph_shades_both_renderers_and_the_sg_
     lamp = bpy.data.objects.new("IWEV lamp", bpy.data.lights.new("IWEV lamp", "AREA"))
     lamp.data.energy, lamp.data.size, lamp.location = 60.0, 4.0, (0.5, -1.0, 3.5)  # a broad lamp the SGs can hold
     scene = scene_with(ball, lamp)
-    world = bpy.data.worlds.new("IWEV sky")
-    enable_nodes(world)
-    world.node_tree.nodes["Background"].inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
-    scene.world = world
+    uniform_world(scene, (1.0, 1.0, 1.0), "IWEV sky")
     plan = build_plan(scene, BakeSettings.from_preset("draft", texel_density=4.0, lightfield_resolution=8, samples=8))
     assert plan.environment.iwev
     capture(scene, plan, tmp_path)

@@ -14,7 +14,7 @@ from shaders.env_visibility import above_horizon_fraction
 from shaders.lightfield_tiles import read_images, read_index
 from shaders.octahedral import direction_to_pixel, pixel_directions
 from shaders.texel_maps import channels, read_texel_maps
-from tests.scene_helpers import cube, material, mesh_object, scene_with, uv_sphere
+from tests.scene_helpers import cube, material, mesh_object, scene_with, uniform_world, uv_sphere
 
 pytestmark = pytest.mark.slow
 
@@ -30,13 +30,6 @@ def _emissive(name, strength, color=(1.0, 1.0, 1.0)):
     emission.inputs["Strength"].default_value = strength
     mat.node_tree.links.new(emission.outputs[0], nodes["Material Output"].inputs["Surface"])
     return mat
-
-
-def _world(scene, color):
-    world = bpy.data.worlds.new("test world")
-    enable_nodes(world)
-    world.node_tree.nodes["Background"].inputs["Color"].default_value = (*color, 1)
-    scene.world = world
 
 
 def _optix_gpus():
@@ -69,7 +62,7 @@ def test_probe_emitters_land_on_the_predicted_pixels_for_all_six_faces_of_a_box(
         objects.append(mesh_object(f"Probe {i}", uv_sphere(3.0, 16, 8), _emissive(f"probe {i}", 50.0)))
         objects[-1].location = 40.0 * d
     scene = scene_with(*objects)
-    _world(scene, (0, 0, 0))
+    uniform_world(scene, (0, 0, 0))
     plan, result, atlas = _bake(scene, tmp_path, resolution=resolution, samples=4, density=4.0, device=device)
     texels, images = read_images(tmp_path / "lightfield", plan.stage_hash("render"))
     positions, normals = _texel_data(atlas, texels)
@@ -94,7 +87,7 @@ def test_energy_inside_an_emitting_sphere_and_nothing_below_the_horizon(tmp_path
     floor = mesh_object("Disc", lambda bm: bmesh.ops.create_grid(bm, x_segments=1, y_segments=1, size=0.5),
                         material("glossy", 0.2))
     scene = scene_with(shell, floor)
-    _world(scene, (0, 0, 0))
+    uniform_world(scene, (0, 0, 0))
     plan, result, atlas = _bake(scene, tmp_path, resolution=16, samples=4, density=4.0, midpoints=6, device=device)
     assert result.devices == (["CPU"] if device == "cpu" else _optix_gpus())
     texels, images = read_images(tmp_path / "lightfield", plan.stage_hash("render"))
@@ -135,7 +128,7 @@ def test_a_bake_leaves_nothing_in_the_temp_directory(tmp_path, monkeypatch):
     monkeypatch.setattr(tempfile, "tempdir", str(temp))
     scene = scene_with(mesh_object("Disc", lambda bm: bmesh.ops.create_grid(bm, x_segments=1, y_segments=1, size=0.5),
                                    material("glossy", 0.2)))
-    _world(scene, (0.5, 0.5, 0.5))
+    uniform_world(scene, (0.5, 0.5, 0.5))
     _bake(scene, tmp_path / "bake", resolution=8, samples=1, density=2.0)
     assert list(temp.iterdir()) == []
 
@@ -147,7 +140,7 @@ def test_midpoints_on_a_curved_surface_lie_on_it_and_see_what_its_texels_see(tmp
     shell = mesh_object("Shell", uv_sphere(6.0, 32, 16), _emissive("shell", radiance))
     ball = mesh_object("Ball", uv_sphere(0.5, 48, 24), material("glossy", 0.2))
     scene = scene_with(shell, ball)
-    _world(scene, (0, 0, 0))
+    uniform_world(scene, (0, 0, 0))
     plan, _, atlas = _bake(scene, tmp_path, resolution=16, samples=4, density=6.0, midpoints=8)
     pairs, held_out = read_images(tmp_path / "midpoints", plan.stage_hash("render"))
     assert len(pairs) == 8
@@ -173,7 +166,7 @@ def test_point_and_area_lamps_are_in_the_light_field_and_stay_untouched(tmp_path
     area.data.energy, area.data.size = 200.0, 1.0
     area.matrix_world = Matrix.Translation((-3.0, 0.0, 3.0)) @ Matrix.Rotation(-np.pi / 4, 4, "Y")
     scene = scene_with(plane, point, area)
-    _world(scene, (0, 0, 0))
+    uniform_world(scene, (0, 0, 0))
     plan, result, atlas = _bake(scene, tmp_path, resolution=16, samples=16, density=4.0)
     texels, images = read_images(tmp_path / "lightfield", plan.stage_hash("render"))
     positions, _ = _texel_data(atlas, texels)
@@ -197,7 +190,7 @@ def test_environment_visibility_open_sky_roof_and_roughness(tmp_path):
     roof = mesh_object("Roof", cube(1.0), material("roof", 0.9))
     roof.matrix_world = Matrix.Translation((-4.0, 0.0, 0.4)) @ Matrix.Diagonal((8.0, 8.0, 0.2, 1.0))
     scene = scene_with(*ground.values(), roof)
-    _world(scene, (1.0, 1.0, 1.0))
+    uniform_world(scene, (1.0, 1.0, 1.0))
     plan, result, atlas = _bake(scene, tmp_path, resolution=16, samples=8, density=4.0)
     assert plan.environment.iwev and plan.environment.iwev_channels == 1
     texels, w = read_images(tmp_path / "env_visibility", plan.stage_hash("render"))
@@ -225,7 +218,7 @@ def test_resume_after_cancel_renders_only_the_rest_and_farm_shares_merge(tmp_pat
     lamp = bpy.data.objects.new("Lamp", bpy.data.lights.new("Lamp", "POINT"))
     lamp.location = (2, 2, 2)
     scene = scene_with(obj, lamp)
-    _world(scene, (0, 0, 0))
+    uniform_world(scene, (0, 0, 0))
     settings = BakeSettings.from_preset("draft", lightfield_resolution=8, samples=4, texel_density=4.0)
     plan = build_plan(scene, settings)
     for out in (tmp_path / "resumed", tmp_path / "fresh", tmp_path / "farm"):
@@ -281,7 +274,7 @@ def test_atlas_light_field_equals_a_panoramic_render_of_the_same_texel(tmp_path)
     wall = mesh_object("Wall", cube(1.0), material("wall", 0.9))
     wall.matrix_world = Matrix.Translation((-1.5, 0.0, 1.0)) @ Matrix.Diagonal((0.2, 3.0, 2.0, 1.0))
     scene = scene_with(floor, panel, wall)
-    _world(scene, (0.05, 0.1, 0.2))
+    uniform_world(scene, (0.05, 0.1, 0.2))
     scene.world["sglf_test"] = True
     plan = build_plan(scene, BakeSettings.from_preset("draft", lightfield_resolution=resolution, samples=64,
                                                       texel_density=2.0))
@@ -323,7 +316,7 @@ def test_nan_and_negative_pixels_in_an_hdri_are_sanitised_with_a_warning(tmp_pat
     plane = mesh_object("Plane", lambda bm: bmesh.ops.create_grid(bm, x_segments=1, y_segments=1, size=0.5),
                         material("glossy", 0.2))
     scene = scene_with(plane)
-    _world(scene, (1, 1, 1))
+    uniform_world(scene, (1, 1, 1))
     image = bpy.data.images.new("bad sky", 16, 8, float_buffer=True)
     pixels = np.ones((8, 16, 4), np.float32)
     pixels[2, 3, :3], pixels[5, 9, 0], pixels[6, 1, 1] = np.nan, -4.0, np.inf
