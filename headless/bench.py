@@ -25,7 +25,7 @@ writes them to bench_out/bench.json.
             reflected radiance; the measured rule behind shaders/bake_plan.py SG_COUNT_BY_ROUGHNESS; sg_count.png.
   encoders  free SGs against fixed SG12 and L2 SH (each baked, applied, evaluated) at equal bytes per texel, on spheres:
             RMSE and FLIP on glossy pixels (and per roughness class), reflected-radiance error of each sphere's
-            texels at its roughness. Target: >= 2x lower RMSE.
+            texels at its roughness, split into the SGs' fit and the closed form's error. Target: >= 2x lower RMSE.
   stability the numerical-stability sweep: `spheres` at roughness 0 and 1, a 1e5 emitter, no light, scale 1e4 and
             1e-3, each baked and evaluated: every output finite, and the errors.
   hair      the hair filter (headless/bench_hair.py): onnxruntime time at 1024^2, PSNR/FLIP against Cycles
@@ -484,9 +484,10 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 16,
     5 SGs (70 B) against fixed SG12 by NNLS (72 B), and CNN with 4 SGs (56 B) against L2 SH (54 B, shaded by the
     SH variant of the node group); each baked, applied and evaluated against Cycles (RMSE and FLIP on glossy
     pixels), plus the numpy error of the reflected radiance per material (glossy_error of its texels at its
-    roughness, against the rendered light fields; the floor is an irradiance lightmap and has no SGs). The light
-    fields are Draft's (R = 16, 32 spp) unless given; docs/design-additions.md §18 has the ratios at R = 32 and
-    at 128 spp."""
+    roughness, against the rendered light fields; the floor is an irradiance lightmap and has no SGs), and for the
+    SG encoders that error split into the SGs' fit and the node group's closed form (encoding_error_split). The
+    light fields are Draft's (R = 16, 32 spp) unless given; docs/design-additions.md §18 has the ratios at R = 32
+    and at 128 spp, §19 the split."""
     import numpy as np
 
     from blender_addon.apply import apply_stage, remove_bake
@@ -499,6 +500,7 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 16,
     from shaders.sg_textures import read_sg_texture, read_sh_texture
     from shaders.texel_maps import channels, read_texel_maps, texels_of_objects
     from training.baselines import eval_sh
+    from training.glossy_refit import encoding_error_split
     from training.sg_fit import glossy_error, reconstruct
     from training.train_stage import texel_roughness, train_stage
 
@@ -533,16 +535,25 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 16,
         normals = channels(atlas, "Ng.X", 3)[texels[:, 0], texels[:, 1]].astype(np.float64)
         roughness = texel_roughness(atlas, texel_info, texels, plan)
         r, c = texels[:, 0], texels[:, 1]
+        split = None  # the SH baseline has no SGs to split
         if encoder == "sh_l2":
             prediction = eval_sh(read_sh_texture(out / "sg_lightfield.exr")[0][r, c], images.shape[1])
         else:
             axis, sharpness, amplitude, _ = read_sg_texture(out / "sg_lightfield.exr")
-            prediction = reconstruct(axis[r, c], sharpness[r, c], amplitude[r, c], images.shape[1])
+            axis, sharpness, amplitude = axis[r, c], sharpness[r, c], amplitude[r, c]
+            prediction = reconstruct(axis, sharpness, amplitude, images.shape[1])
+            split = {}
+            for value in np.unique(roughness):  # up to ENCODING_SPLIT_TEXELS evenly picked texels per sphere
+                each = np.flatnonzero(roughness == value)
+                each = each[np.linspace(0, len(each) - 1, min(ENCODING_SPLIT_TEXELS, len(each))).astype(int)]
+                split[f"{value:g}"] = {k: round(v, 4) for k, v in encoding_error_split(
+                    images[each], normals[each], axis[each], sharpness[each], amplitude[each], value).items()}
         rows.append({"encoder": name, "bytes_per_texel": trained.bytes_per_texel,
                      "glossy_rmse": round(_over_glossy(classes, "rmse"), 4),
                      "glossy_flip": round(_over_glossy(classes, "flip"), 4),
                      "flip": round(errors["flip"], 4),
                      "reflected_error": reflected_errors(prediction, images, normals, roughness),
+                     "encoding_error_split": split,
                      "fit_s": round(trained.seconds, 1), "bake_s": round(bake_s, 1),
                      "flip_by_roughness": {k: None if v["flip"] is None else round(v["flip"], 4)
                                            for k, v in classes.items()},
@@ -556,6 +567,13 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 16,
         reflected = ", ".join(f"{k}: {v:.3f}" for k, v in r["reflected_error"].items())
         print(f"  {r['encoder']:<24} {r['bytes_per_texel']:>5} {r['glossy_rmse']:>11.4f} {r['glossy_flip']:>11.4f} "
               f"{r['flip']:>7.4f}  {reflected}")
+    print("  the SGs' reflected error split (encoding_error_split, held-out views, per roughness): fit of the SGs "
+          "to the light field / the node group's closed form against the SGs' exact reflection")
+    for r in rows:
+        if r["encoding_error_split"]:
+            parts = ", ".join(f"{k}: {v['fit']:.3f} / {v['closed_form']:.3f}"
+                              for k, v in r["encoding_error_split"].items())
+            print(f"  {r['encoder']:<24} {parts}")
     free5, sg12, free4, sh = rows
     for baseline, free in ((sg12, free5), (sh, free4)):
         by_class = ", ".join(f"{name} {baseline['rmse_by_roughness'][name] / rmse:.2f}"
@@ -566,6 +584,9 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 16,
               f"(target >= 2; by class: {by_class}), glossy FLIP {baseline['glossy_flip'] / free['glossy_flip']:.2f}, "
               f"reflected error {_mean_value(baseline['reflected_error']) / _mean_value(free['reflected_error']):.2f}")
     return rows
+
+
+ENCODING_SPLIT_TEXELS = 96  # texels per sphere the encoders section splits the reflected error of (~20 s each)
 
 
 KNOB_SWEEP = {"texel_density": (2.0, 8.0), "lightfield_resolution": (8, 32), "samples": (4, 64), "sg_count": (4, 16),

@@ -7,8 +7,8 @@ from scipy.optimize import nnls
 
 from shaders.octahedral import oct_decode
 from shaders.sg_math import sg_glossy
-from training.glossy_refit import (hemisphere_views, nonnegative_quadratic_minimum, reflected_radiance,
-                                   refit_amplitudes, shaded_error)
+from training.glossy_refit import (encoding_error_split, hemisphere_views, nonnegative_quadratic_minimum,
+                                   reflected_radiance, refit_amplitudes, shaded_error)
 
 R = 16
 
@@ -51,6 +51,22 @@ def test_projected_coordinate_descent_reaches_scipy_nnls_minimum():
             reference = nnls(base[b], target[b, :, ch])[0]
             residual = lambda x: np.sum((base[b] @ x - target[b, :, ch]) ** 2)  # noqa: E731
             assert residual(ours[b, :, ch]) <= residual(reference) * (1 + 1e-6) + 1e-9
+
+
+def test_encoding_error_split_finds_a_wrong_fit_apart_from_the_closed_forms_error():
+    """The SGs the light field was rendered from fit it (pixel averaging aside), and what remains is the closed
+    form's own approximation; halved amplitudes miss half the reflected light, which the split calls fit error, while
+    the closed form's share halves with the SGs."""
+    images, normals, axis, sharpness, amplitude = scene(texels=4)
+    sharpness[:] = 6.0
+    images = rendered(axis, sharpness, amplitude, normals)
+    exact = encoding_error_split(images, normals, axis, sharpness, amplitude, 0.5)
+    assert exact["fit"] < 0.03
+    assert 0.005 < exact["closed_form"] < 0.1
+    assert abs(exact["total"] - exact["closed_form"]) <= exact["fit"] + 1e-9
+    halved = encoding_error_split(images, normals, axis, sharpness, 0.5 * amplitude, 0.5)
+    assert abs(halved["fit"] - 0.5) < 0.02
+    assert halved["closed_form"] == pytest.approx(0.5 * exact["closed_form"], rel=1e-6)
 
 
 def test_reflected_radiance_quadrature_matches_the_closed_form_on_broad_lobes():

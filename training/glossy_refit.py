@@ -28,6 +28,7 @@ HELD_OUT_VIEW_AZIMUTHS = 7
 REFIT_RIDGE = 1.0  # times each SG's own weight, towards the CNN's amplitude
 REFIT_SWEEPS = 200  # projected coordinate-descent sweeps, warm-started from the CNN's amplitudes
 REFIT_BATCH = 32  # texels per vectorised step
+ENCODING_SPLIT_BATCH = 8  # texels per step of encoding_error_split (memory: V x (8 R)^2 per texel)
 REFIT_LOBE_PIXELS = 0.5  # refit only where the GGX lobe spans at least this many light-field pixels
 ERROR_TEXELS_PER_MATERIAL = 128  # texels (evenly picked) the reported error of a material uses
 UNIT_F0 = np.ones(1)
@@ -59,11 +60,55 @@ def reflected_radiance(images: np.ndarray, normals: np.ndarray, views: np.ndarra
     """(T, V, C) radiance each texel's GGX surface (F0 = 1) reflects towards `views` (T, V, 3) from its rendered
     light field (T, R, R, C): the exact BRDF summed over the pixels' centres times their solid angles."""
     t, resolution, _, channels = images.shape
+    return reflected_radiance_of_pixels(np.asarray(images, np.float64).reshape(t, -1, channels), normals, views,
+                                        roughness, resolution)
+
+
+def reflected_radiance_of_pixels(radiance: np.ndarray, normals: np.ndarray, views: np.ndarray, roughness: np.ndarray,
+                                 resolution: int) -> np.ndarray:
+    """(T, V, C) as reflected_radiance, for radiance (T, P, C) given at the P = resolution^2 octahedral pixel
+    centres (a finer grid than the light field's, for lobes narrower than its pixels)."""
     directions = pixel_directions(resolution).reshape(-1, 3)
     weighted = ggx_brdf_cos(directions[None, None], views[:, :, None], np.asarray(normals)[:, None, None],
                             np.asarray(roughness, np.float64)[:, None, None], UNIT_F0)[..., 0]
     weighted *= pixel_solid_angles(resolution).reshape(1, 1, -1)
-    return np.einsum("tvp,tpc->tvc", weighted, np.asarray(images, np.float64).reshape(t, -1, channels))
+    return np.einsum("tvp,tpc->tvc", weighted, radiance)
+
+
+ENCODING_SPLIT_SUPERSAMPLING = 8  # fine pixels per light-field pixel side: resolves roughness 0.2 at R = 16
+
+
+def encoding_error_split(images, normals, axis, sharpness, amplitude, roughness,
+                         supersampling: int = ENCODING_SPLIT_SUPERSAMPLING) -> dict:
+    """Where the reflected-radiance error of a texel's SGs comes from, over held-out views (relative RMSE against
+    the exact GGX reflection of the light field, each light-field pixel constant over its solid angle):
+      fit          the SGs themselves, reflected exactly (quadrature on a grid `supersampling` times finer);
+      closed_form  the node group's closed form against that exact reflection of the same SGs;
+      total        the closed form against the light field's reflection (what shaded_error measures, with
+                   pixel-integrated quadrature instead of pixel centres).
+    The fit and closed-form parts add up to at most the total's error (triangle inequality), not exactly."""
+    t, resolution, _, channels = images.shape
+    fine = resolution * supersampling
+    directions = pixel_directions(fine).reshape(-1, 3)
+    rough = np.broadcast_to(np.asarray(roughness, np.float64), (t,))
+    axis, sharpness, amplitude = (np.asarray(x, np.float64) for x in (axis, sharpness, amplitude))
+    sums = dict.fromkeys(("fit", "closed_form", "total", "norm"), 0.0)
+    for start in range(0, t, ENCODING_SPLIT_BATCH):
+        i = np.arange(start, min(start + ENCODING_SPLIT_BATCH, t))
+        views = hemisphere_views(normals[i], HELD_OUT_VIEW_COSINES, HELD_OUT_VIEW_AZIMUTHS)
+        constant = np.asarray(images[i], np.float64).repeat(supersampling, 1).repeat(supersampling, 2)
+        target = reflected_radiance_of_pixels(constant.reshape(len(i), -1, channels), normals[i], views, rough[i], fine)
+        lobes = np.exp(sharpness[i][:, None, :] * (np.einsum("pk,tnk->tpn", directions, axis[i]) - 1.0))
+        sgs = reflected_radiance_of_pixels(np.einsum("tpn,tnc->tpc", lobes, amplitude[i]), normals[i], views,
+                                           rough[i], fine)
+        closed = np.einsum("tvn,tnc->tvc", closed_form_responses(axis[i], sharpness[i], normals[i], views, rough[i]),
+                           amplitude[i])
+        sums["fit"] += float(((sgs - target) ** 2).sum())
+        sums["closed_form"] += float(((closed - sgs) ** 2).sum())
+        sums["total"] += float(((closed - target) ** 2).sum())
+        sums["norm"] += float((target ** 2).sum())
+    norm = max(sums.pop("norm"), 1e-300)
+    return {k: float(np.sqrt(v / norm)) for k, v in sums.items()}
 
 
 def closed_form_responses(axis, sharpness, normals, views, roughness) -> np.ndarray:
