@@ -56,7 +56,6 @@ COPY_SUFFIX = " (SG bake)"
 COPY_KEY = BAKED_COPY_KEY  # on a baked copy: the original material's name
 FAKE_USER_KEY = "sglf_fake_user_set"  # on an original: we set its fake user (and clear it again)
 IMAGE_NAME = "SG Lightfield textures"
-CYCLES_SUFFIX = " (Cycles)"  # the node group of a baked material's Cycles output
 PACKED_FILE = "sg_packed.exr"
 
 
@@ -163,9 +162,9 @@ def _load_image(path: Path, pack: bool):
     return image
 
 
-def _baked_material(original, groups, surface: dict):
-    """The baked copy of `original`: the lightmap UV into the atlas, and per renderer ('EEVEE', 'CYCLES', or 'ALL'
-    for one group both use) its node group's Total as emission into a Material Output for that renderer."""
+def _baked_material(original, group, surface: dict):
+    """The baked copy of `original`: the lightmap UV into the atlas, the node group's Total as emission into one
+    Material Output for all renderers."""
     name = original.name + COPY_SUFFIX
     material = bpy.data.materials.get(name)
     if material is None or material.get(COPY_KEY) != original.name:
@@ -190,21 +189,20 @@ def _baked_material(original, groups, surface: dict):
     for i, n in enumerate((uv, scale, offset, atlas_uv, geometry)):
         n.location = (220 * i, 0)
     albedo = [c * (1 - surface["metallic"]) for c in surface["base_color"]]
-    for row, (target, group) in enumerate(groups.items()):
-        node = tree.nodes.new("ShaderNodeGroup")
-        node.node_tree = group
-        tree.links.new(atlas_uv.outputs["Vector"], node.inputs["UV"])
-        tree.links.new(geometry.outputs["Normal"], node.inputs["Normal"])
-        node.inputs["Roughness"].default_value = surface["roughness"]
-        node.inputs["F0"].default_value = (*surface["f0"], 1.0)
-        node.inputs["Albedo"].default_value = (*albedo, 1.0)
-        emission = tree.nodes.new("ShaderNodeEmission")
-        tree.links.new(node.outputs["Total"], emission.inputs["Color"])
-        output = tree.nodes.new("ShaderNodeOutputMaterial")
-        output.target = target
-        tree.links.new(emission.outputs[0], output.inputs["Surface"])
-        for i, n in enumerate((node, emission, output)):
-            n.location = (220 * (5 + i), -300 * row)
+    node = tree.nodes.new("ShaderNodeGroup")
+    node.node_tree = group
+    tree.links.new(atlas_uv.outputs["Vector"], node.inputs["UV"])
+    tree.links.new(geometry.outputs["Normal"], node.inputs["Normal"])
+    node.inputs["Roughness"].default_value = surface["roughness"]
+    node.inputs["F0"].default_value = (*surface["f0"], 1.0)
+    node.inputs["Albedo"].default_value = (*albedo, 1.0)
+    emission = tree.nodes.new("ShaderNodeEmission")
+    tree.links.new(node.outputs["Total"], emission.inputs["Color"])
+    output = tree.nodes.new("ShaderNodeOutputMaterial")
+    output.target = "ALL"
+    tree.links.new(emission.outputs[0], output.inputs["Surface"])
+    for i, n in enumerate((node, emission, output)):
+        n.location = (220 * (5 + i), 0)
     return material
 
 
@@ -226,17 +224,18 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
         raise BakeInputError(f"objects {missing} of the plan are not in scene '{scene.name}'; make a new plan")
     layout, path, measured, env_sgs = build_packed_image(out_dir, plan)
     image = _load_image(path, pack_images)
-    groups = {}  # SG count (None: irradiance only) -> {renderer: node group evaluating the packed image}
+    groups = {}  # SG count (None: irradiance only) -> the node group evaluating the packed image
 
     def evaluated_count(planned: int) -> int:
         # Textures with another SG count than the plan's (the fixed-SG baseline) are evaluated whole everywhere.
         return min(planned, layout.sg_count) if layout.sg_count == plan.max_sg_count else layout.sg_count
 
-    def group_for(planned: int) -> dict:
-        """EEVEE's group fits its uniform block; Cycles gets the same shading in fewer, faster nodes, except with
-        IWEV: EEVEE processes a material's Cycles graph too, about 5 CPU-minutes per courtyard material against 6 s
-        without it (docs/design-additions.md §18), so both renderers share EEVEE's. A planned count of 0 (an
-        irradiance lightmap) reads only the irradiance tile, whatever the encoder."""
+    def group_for(planned: int):
+        """One group per SG count, EEVEE's graph (it fits EEVEE's uniform block), shading both renderers. A Cycles-only
+        graph beside it (Vector Math nodes, constants as socket values: 20-33 % faster Cycles renders) made EEVEE
+        spend 80 s (spheres) to 5 CPU-minutes (courtyard) per material compiling, against 5 s without it
+        (docs/design-additions.md §18-19). A planned count of 0 (an irradiance lightmap) reads only the irradiance
+        tile, whatever the encoder."""
         count = evaluated_count(planned) if planned else None
         if count not in groups:
             if count is None:
@@ -248,12 +247,7 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
                 fewer = SGTextureLayout(count, min(count, layout.iwev_count), layout.has_irradiance, layout.atlas_size,
                                         tiles=layout.tiles)  # the same tiles: only the first `count` SGs are read
                 name = GROUP_NAME if count == layout.sg_count else f"{GROUP_NAME} ({count} SGs)"
-            eevee = build_node_group(image, fewer, env_sgs, name)
-            if count and fewer.iwev_count:  # EEVEE would spend minutes per material on a Cycles graph beside it
-                groups[count] = {"ALL": eevee}
-            else:
-                cycles = build_node_group(image, fewer, env_sgs, name + CYCLES_SUFFIX, for_cycles=True)
-                groups[count] = {"EEVEE": eevee, "CYCLES": cycles}
+            groups[count] = build_node_group(image, fewer, env_sgs, name)
         return groups[count]
 
     record = json.loads(scene.get(BAKE_RECORD_KEY, "{}"))
@@ -287,11 +281,10 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
                 for name, size in uniform_bytes.items() if size > UNIFORM_BLOCK_LIMIT]
     seconds = time.perf_counter() - start
     sg_counts = {m.name: evaluated_count(m.sg_count) for o in plan.baked_objects for m in o.materials if m.glossy}
-    largest = groups.get(layout.sg_count, groups.get(None, {}))
-    most = largest.get("EEVEE", largest.get("ALL"))
+    most = groups.get(layout.sg_count, groups.get(None))
     info = {"materials": sorted(baked_materials), "node_group": most.name if most else None,
             "nodes": flattened_node_count(most) if most else 0,  # nested groups expanded, as renderers compile it
-            "node_groups": {g.name: flattened_node_count(g) for pair in groups.values() for g in pair.values()},
+            "node_groups": {g.name: flattened_node_count(g) for g in groups.values()},
             "sg_counts": sg_counts, "irradiance_only": plan.irradiance_only_materials,
             "sg_evaluations_saved": None if layout.sh_count else
             round(1 - sum(sg_counts.values()) / max(layout.sg_count * len(sg_counts), 1), 3),

@@ -106,20 +106,15 @@ class NodeOps:
       nested group), so Blender cannot fold it, and linked from there to every use (4 bytes per constant and tree
       instance: cheaper in build time than passing each constant into every instance).
     Without `linked_constants` (Cycles-only trees, e.g. the hair reference), constants are socket values.
-    With `vector_nodes` (Cycles-only too) vector arithmetic is one Vector Math node per operation and constants are
-    socket values: Cycles' SVM runs a node per instruction and needs no uniforms, so this graph is the faster one
-    there (docs/design-additions.md section 15).
     """
 
-    def __init__(self, tree, subgroups=None, *, anchor=None, group_input=None, linked_constants=None,
-                 vector_nodes=False):
+    def __init__(self, tree, subgroups=None, *, anchor=None, group_input=None, linked_constants=None):
         self.tree = tree
-        self.vector_nodes = vector_nodes
         self.count = 0
         self.gate = None  # a non-negative value later texture lookups are made to depend on
         self.subgroups = {} if subgroups is None else subgroups  # call name -> (nested group, takes a 'zero')
-        self.linked_constants = False if vector_nodes else (anchor is not None or group_input is not None) \
-            if linked_constants is None else linked_constants
+        self.linked_constants = (anchor is not None or group_input is not None) if linked_constants is None \
+            else linked_constants
         self.anchor = anchor  # top level: a scalar socket that varies per pixel (the zero is made from it)
         self.group_input = group_input  # nested group: its Group Input node (its 'zero' arrives there)
         self._constants = {}  # value -> socket
@@ -250,7 +245,7 @@ class NodeOps:
             group.interface.new_socket(key, in_out="INPUT", socket_type=socket_type(value))
         group_inputs = self._node_in(group, "NodeGroupInput")
         ops = NodeOps(group, self.subgroups, group_input=group_inputs if self.linked_constants else None,
-                      linked_constants=self.linked_constants, vector_nodes=self.vector_nodes)
+                      linked_constants=self.linked_constants)
         ops.count = 1
         outputs = function(ops, **{key: group_inputs.outputs[key] for key in inputs})
         for key, value in outputs.items():
@@ -341,74 +336,46 @@ class NodeOps:
     def power(self, a, exponent):
         return self._math("POWER", a, float(exponent))
 
-    # -- vector operations: component by component, or one Vector Math node each with `vector_nodes` ------------
-
-    def _vector_node(self, operation, *values, output=0, scale=None):
-        """A Vector Math node for `operation` when this backend makes them and an input is not all numbers."""
-        numbers = all(isinstance(v, tuple) and all(map(_is_number, v)) for v in values) and \
-            (scale is None or _is_number(scale))
-        if not self.vector_nodes or numbers:
-            return None
-        node = self._node("ShaderNodeVectorMath", operation=operation)
-        for socket, value in zip(node.inputs, values):
-            self._feed(socket, value)
-        if scale is not None:
-            self._feed(node.inputs["Scale"], scale)
-        return node.outputs[output]
+    # -- vector operations, component by component ------------------------------------------------------------
 
     def dot(self, a, b):
-        node = self._vector_node("DOT_PRODUCT", a, b, output="Value")
-        if node is not None:
-            return node
         total = 0.0
         for x, y in zip(self._vec(a), self._vec(b)):
             total = self.muladd(x, y, total)
         return total
 
     def cross(self, a, b):
-        node = self._vector_node("CROSS_PRODUCT", a, b)
-        if node is not None:
-            return node
         (ax, ay, az), (bx, by, bz) = self._vec(a), self._vec(b)
         return Vec(self.muladd(self.mul(p, q), -1.0, self.mul(r, s))
                    for r, s, p, q in ((ay, bz, az, by), (az, bx, ax, bz), (ax, by, ay, bx)))
 
     def normalize(self, a):
-        node = self._vector_node("NORMALIZE", a)
-        if node is not None:
-            return node
         a = self._vec(a)
         inverse_length = self.div(1.0, self.sqrt(self.dot(a, a)))  # 0 for the zero vector, as Blender's node
         return Vec(self.mul(x, inverse_length) for x in a)
 
-    def _componentwise(self, operation, scalar, a, b):
-        node = self._vector_node(operation, a, b)
-        if node is not None:
-            return node
+    def _componentwise(self, scalar, a, b):
         return Vec(scalar(x, y) for x, y in zip(self._vec(a), self._vec(b)))
 
     def vadd(self, a, b):
-        return self._componentwise("ADD", self.add, a, b)
+        return self._componentwise(self.add, a, b)
 
     def vsub(self, a, b):
-        return self._componentwise("SUBTRACT", self.sub, a, b)
+        return self._componentwise(self.sub, a, b)
 
     def vmul(self, a, b):  # componentwise
-        return self._componentwise("MULTIPLY", self.mul, a, b)
+        return self._componentwise(self.mul, a, b)
 
     def vscale(self, a, s):
         if _is_number(s) and s == 1.0:
             return a
-        node = self._vector_node("SCALE", a, scale=s)
-        if node is not None:
-            return node
         return Vec(self.mul(x, s) for x in self._vec(a))
 
     def vmax(self, a, b):
-        return self._componentwise("MAXIMUM", self.maximum, a, b)
+        return self._componentwise(self.maximum, a, b)
 
     def vmin(self, a, b):
-        return self._componentwise("MINIMUM", self.minimum, a, b)
+        return self._componentwise(self.minimum, a, b)
 
 
 def flattened_node_count(tree) -> int:
@@ -440,10 +407,9 @@ def closest_texture(tree, image):
     return node
 
 
-def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GROUP_NAME, *, for_cycles=False):
+def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GROUP_NAME):
     """Create or update the node group and its nested groups (`<name> / ...`); returns it. `image` is the packed SG
-    image (Non-Color, half float). The group computes the same in both renderers; `for_cycles` builds it with
-    Vector Math nodes and constant sockets (faster in Cycles, but beyond EEVEE's uniform block at a few SGs)."""
+    image (Non-Color, half float). The group computes the same in both renderers."""
     group = new_or_cleared_group(name)
     sockets = [("UV", "INPUT", "NodeSocketVector"), ("Normal", "INPUT", "NodeSocketVector"),
                ("Roughness", "INPUT", "NodeSocketFloat"), ("F0", "INPUT", "NodeSocketColor"),
@@ -456,7 +422,7 @@ def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GRO
     geometry = NodeOps._node_in(group, "ShaderNodeNewGeometry")
     position = NodeOps._node_in(group, "ShaderNodeSeparateXYZ")
     group.links.new(geometry.outputs["Position"], position.inputs[0])
-    ops = NodeOps(group, vector_nodes=True) if for_cycles else NodeOps(group, anchor=position.outputs["X"])
+    ops = NodeOps(group, anchor=position.outputs["X"])
     ops.count = 3
     # The material may leave these unlinked (constants): laundered so nothing downstream folds into uniforms.
     uv, normal, f0, albedo = (ops.launder(inputs.outputs[key]) for key in ("UV", "Normal", "F0", "Albedo"))

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from mathutils import Vector
 
-from blender_addon.apply import BAKE_RECORD_KEY, CYCLES_SUFFIX, IMAGE_NAME, apply_stage, baked_group, remove_bake
+from blender_addon.apply import BAKE_RECORD_KEY, IMAGE_NAME, apply_stage, baked_group, remove_bake
 from blender_addon.capture import capture
 from blender_addon.render import quiet_stdout, render_stage
 from blender_addon.scene_analysis import active_scene, build_plan
@@ -56,10 +56,9 @@ def _parity_scene(group, width, height):
     return scene, node
 
 
-def _parity_worst(tmp_path, layout, cells, env_sgs, roughnesses, angles_deg, for_cycles=False) -> float:
-    """Worst relative difference between a Cycles render of the node group (EEVEE's graph, or with `for_cycles`
-    the one baked materials give Cycles) and its numpy reference, over the parameter cells (h, w) of every tile
-    and the given roughnesses and normal angles."""
+def _parity_worst(tmp_path, layout, cells, env_sgs, roughnesses, angles_deg) -> float:
+    """Worst relative difference between a Cycles render of the node group and its numpy reference, over the
+    parameter cells (h, w) of every tile and the given roughnesses and normal angles."""
     h, w = next(iter(cells.values())).shape[:2]
     # Every parameter cell spans 2 x 2 identical texels and each pixel centre hits the middle of a cell, so the
     # node-side bilinear filter returns the cell's exact values despite Cycles' tiny pixel-filter jitter.
@@ -69,8 +68,7 @@ def _parity_worst(tmp_path, layout, cells, env_sgs, roughnesses, angles_deg, for
     stored, _, _ = read_exr(path, channels=["R", "G", "B", "A"])
     image = bpy.data.images.load(str(path))
     image.colorspace_settings.name, image.alpha_mode = "Non-Color", "CHANNEL_PACKED"
-    group = build_node_group(image, layout, env_sgs, name=f"SG Lightfield parity {layout.sg_count} {layout.sh_count}",
-                             for_cycles=for_cycles)
+    group = build_node_group(image, layout, env_sgs, name=f"SG Lightfield parity {layout.sg_count} {layout.sh_count}")
     scene, node = _parity_scene(group, w, h)
     columns, rows = layout.grid
 
@@ -102,8 +100,7 @@ def _parity_worst(tmp_path, layout, cells, env_sgs, roughnesses, angles_deg, for
     return worst
 
 
-@pytest.mark.parametrize("for_cycles", (False, True), ids=("eevee_graph", "cycles_graph"))
-def test_node_group_matches_its_numpy_reference_in_cycles(tmp_path, for_cycles):
+def test_node_group_matches_its_numpy_reference_in_cycles(tmp_path):
     """Over a grid that includes the extremes: sharpness 1e-4..1e4, amplitudes 0..1e4, roughness 0 (floored)
     to 1, grazing n.v, with the environment term (global env SGs x W_E from IWEV SGs, clipped to [0, 1]);
     the stored (half-float) parameters feed the numpy reference."""
@@ -122,23 +119,20 @@ def test_node_group_matches_its_numpy_reference_in_cycles(tmp_path, for_cycles):
     cells[("irradiance", 0)] = np.concatenate([rng.uniform(0, 3, (h, w, 3)), np.ones((h, w, 1))], -1)
     cells[("iwev", 0)] = np.concatenate([rng.normal(size=(h, w, 3)), rng.uniform(0, 1, (h, w, 1))], -1)
     cells[("iwev_amp", 0)] = np.concatenate([rng.uniform(0, 1.2, (h, w, 3)), np.zeros((h, w, 1))], -1)
-    assert _parity_worst(tmp_path, layout, cells, env_sgs, (0.0, 0.2, 0.6, 1.0), (0.0, 60.0, 89.0),
-                         for_cycles) < 1e-3
+    assert _parity_worst(tmp_path, layout, cells, env_sgs, (0.0, 0.2, 0.6, 1.0), (0.0, 60.0, 89.0)) < 1e-3
 
 
-@pytest.mark.parametrize("for_cycles", (False, True), ids=("eevee_graph", "cycles_graph"))
-def test_irradiance_lightmap_group_matches_its_numpy_reference_in_cycles(tmp_path, for_cycles):
+def test_irradiance_lightmap_group_matches_its_numpy_reference_in_cycles(tmp_path):
     """The group of rough materials baked as an irradiance lightmap (no SGs): the split-sum specular of the
     irradiance and the diffuse layered under it, from roughness 0.6 to 1 and normal to grazing view."""
     h, w = 4, 4
     layout = SGTextureLayout(0, has_irradiance=True, atlas_size=(2 * w, 2 * h))
     irradiance = np.random.default_rng(3).uniform(0.01, 3, (h, w, 3))
     cells = {("irradiance", 0): np.concatenate([irradiance, np.ones((h, w, 1))], -1)}
-    assert _parity_worst(tmp_path, layout, cells, [], (0.6, 0.8, 1.0), (0.0, 60.0, 89.0), for_cycles) < 1e-3
+    assert _parity_worst(tmp_path, layout, cells, [], (0.6, 0.8, 1.0), (0.0, 60.0, 89.0)) < 1e-3
 
 
-@pytest.mark.parametrize("for_cycles", (False, True), ids=("eevee_graph", "cycles_graph"))
-def test_sixteen_sgs_with_environment_visibility_fit_in_cycles_svm_stack(tmp_path, for_cycles):
+def test_sixteen_sgs_with_environment_visibility_fit_in_cycles_svm_stack(tmp_path):
     """The largest group the presets make (16 SGs, 16 IWEV SGs, 16 environment SGs) compiles in Cycles' 255-slot SVM
     stack and still equals its numpy reference (without the lookup barriers: "out of SVM stack space", black)."""
     n, iwev, h, w = 16, 16, 4, 4
@@ -146,11 +140,10 @@ def test_sixteen_sgs_with_environment_visibility_fit_in_cycles_svm_stack(tmp_pat
     layout = SGTextureLayout(n, iwev_count=iwev, has_irradiance=True, atlas_size=(2 * w, 2 * h))
     env_sgs = _random_env_sgs(rng)
     cells = _largest_groups_cells(n, iwev, h, w, rng)
-    assert _parity_worst(tmp_path, layout, cells, env_sgs, (0.3,), (30.0,), for_cycles) < 1e-3
+    assert _parity_worst(tmp_path, layout, cells, env_sgs, (0.3,), (30.0,)) < 1e-3
 
 
-@pytest.mark.parametrize("for_cycles", (False, True), ids=("eevee_graph", "cycles_graph"))
-def test_sh_node_group_matches_its_numpy_reference_in_cycles(tmp_path, for_cycles):
+def test_sh_node_group_matches_its_numpy_reference_in_cycles(tmp_path):
     """The SH L2 baseline's variant of the group: signed coefficients up to 1e3, roughness 0 to 1, grazing."""
     h, w = 4, 4
     rng = np.random.default_rng(1)
@@ -159,7 +152,7 @@ def test_sh_node_group_matches_its_numpy_reference_in_cycles(tmp_path, for_cycle
              for j in range(9)}
     cells[("sh", 0)][0, 0, :3] = 1e3
     cells[("irradiance", 0)] = np.concatenate([rng.uniform(0, 3, (h, w, 3)), np.ones((h, w, 1))], -1)
-    assert _parity_worst(tmp_path, layout, cells, (), (0.0, 0.5, 1.0), (0.0, 89.0), for_cycles) < 1e-3
+    assert _parity_worst(tmp_path, layout, cells, (), (0.0, 0.5, 1.0), (0.0, 89.0)) < 1e-3
 
 
 def _material_fingerprint(mat):
@@ -252,7 +245,13 @@ def test_write_back_remove_restores_everything_and_rebake_does_not_pile_up(tmp_p
     assert ball.material_slots[0].material.name == "Glossy (SG bake)"
     assert info["irradiance_only"] == ["Rough"]  # rough: an irradiance lightmap through its own small group
     assert baked_group(floor.material_slots[0].material).name == f"{GROUP_NAME} (irradiance)"
-    assert baked_group(floor.material_slots[0].material, "CYCLES").name == f"{GROUP_NAME} (irradiance){CYCLES_SUFFIX}"
+    for baked in (ball.material_slots[0].material, floor.material_slots[0].material):
+        # One graph, one output for both renderers: a Cycles graph beside EEVEE's cost EEVEE 80 s of compiling per
+        # material on the Draft spheres, against 5 s without (docs/design-additions.md §19).
+        outputs = [n for n in baked.node_tree.nodes if n.bl_idname == "ShaderNodeOutputMaterial"]
+        groups = [n for n in baked.node_tree.nodes if n.bl_idname == "ShaderNodeGroup"]
+        assert [o.target for o in outputs] == ["ALL"] and len(groups) == 1
+        assert baked_group(baked, "CYCLES") == baked_group(baked, "EEVEE") == groups[0].node_tree
     assert bpy.data.images[IMAGE_NAME].packed_file is not None
     assert _material_fingerprint(glossy) == before["Glossy"]  # the original is never edited
     with active_scene(scene), quiet_stdout():  # the baked scene renders in Cycles
@@ -338,7 +337,7 @@ def test_eevee_renders_the_baked_scene_like_cycles_evaluates_it(tmp_path):
     cycles, _, _ = read_exr(tmp_path / "CYCLES_0.exr", channels=["R", "G", "B"])
     difference = np.abs(tonemap(eevee) - tonemap(cycles))
     assert tonemap(cycles).max() > 0.3  # the picture is not empty
-    assert difference.mean() < 0.005, difference.mean()  # each engine's graph of one shading (measured 4e-4)
+    assert difference.mean() < 0.005, difference.mean()  # one graph in both engines (measured 4e-4)
     remove_bake(scene)
 
 
@@ -448,12 +447,9 @@ def test_each_material_gets_the_sg_count_its_roughness_needs(tmp_path):
     rougher_group = baked_group(other.material_slots[0].material, "EEVEE")
     assert smooth_group.name == GROUP_NAME and rougher_group.name == f"{GROUP_NAME} ({counts['Rougher']} SGs)"
     assert len(rougher_group.nodes) < len(smooth_group.nodes)
-    cycles_groups = [baked_group(o.material_slots[0].material, "CYCLES") for o in (ball, other)]
-    assert [g.name for g in cycles_groups] == [smooth_group.name + CYCLES_SUFFIX, rougher_group.name + CYCLES_SUFFIX]
+    assert [baked_group(o.material_slots[0].material, "CYCLES") for o in (ball, other)] == [smooth_group, rougher_group]
     assert result["sg_counts"] == counts and result["node_groups"] == {  # nested groups expanded in the counts
-        g.name: flattened_node_count(g) for g in (smooth_group, rougher_group, *cycles_groups)}
-    assert all(flattened_node_count(c) < flattened_node_count(e)  # Vector Math nodes: fewer for Cycles' SVM
-               for c, e in zip(cycles_groups, (smooth_group, rougher_group)))
+        g.name: flattened_node_count(g) for g in (smooth_group, rougher_group)}
     assert result["nodes"] > len(smooth_group.nodes) + 100 * counts["Smooth"]  # each glossy SG group expanded
     assert result["sg_evaluations_saved"] == pytest.approx(1 - sum(counts.values()) / (2 * counts["Smooth"]), abs=1e-3)
     rendered = _render_small(scene, tmp_path / "baked.exr", (0.75, -5, 0))  # both groups shade to finite colours
@@ -486,13 +482,13 @@ def test_sh_baseline_bakes_applies_and_shades_through_its_own_group(tmp_path):
     info = apply_stage(scene, plan, tmp_path)
     group = baked_group(ball.material_slots[0].material)
     assert group.name == f"{GROUP_NAME} (SH L2)" and info["encoder"] == "sh_l2" and info["layout"]["sh_count"] == 9
-    assert baked_group(ball.material_slots[0].material, "CYCLES").name == group.name + CYCLES_SUFFIX
+    assert baked_group(ball.material_slots[0].material, "CYCLES") == group
     assert info["irradiance_from_sgs_rel_error_median"] < 0.1
     rendered = _render_small(scene, tmp_path / "baked.exr", (0, -5, 0))
     assert np.all(np.isfinite(rendered)) and rendered[6:12, 13:19].mean() > 0.01  # the lit ball
-    group_names = (group.name, group.name + CYCLES_SUFFIX)
+    group_name = group.name
     remove_bake(scene)
-    assert not any(name in bpy.data.node_groups for name in group_names)
+    assert group_name not in bpy.data.node_groups
 
 
 
@@ -500,7 +496,7 @@ def test_with_environment_visibility_one_graph_shades_both_renderers_and_the_sg_
     """With IWEV the light field leaves the sky to IWEV, and the irradiance tile adds the sky back. The apply stage's
     check of the SGs' own irradiance compared them with that sky-lit total, and reported a median error of 0.98 on
     the courtyard; it must compare them with the light field they encode. And EEVEE spent minutes per courtyard
-    material on the Cycles graph beside its own, so with IWEV one graph feeds one output both renderers use."""
+    material on a Cycles graph beside its own, so one graph feeds one output both renderers use."""
     from blender_addon.apply import irradiance_from_lightfields
     from shaders.lightfield_tiles import read_images
     from shaders.texel_maps import channels, read_texel_maps
@@ -522,7 +518,7 @@ def test_with_environment_visibility_one_graph_shades_both_renderers_and_the_sg_
     outputs = [n for n in baked.node_tree.nodes if n.bl_idname == "ShaderNodeOutputMaterial"]
     assert [o.target for o in outputs] == ["ALL"]
     assert baked_group(baked, "CYCLES") == baked_group(baked, "EEVEE") == bpy.data.node_groups[GROUP_NAME]
-    assert not any(g.name.endswith(CYCLES_SUFFIX) for g in bpy.data.node_groups)
+    assert not any(g.name.endswith(" (Cycles)") for g in bpy.data.node_groups)  # the old per-renderer graph
     assert measured["node_group"] == GROUP_NAME and measured["nodes"] > 0
     atlas, _ = read_texel_maps(tmp_path)
     texels, lightfield = read_images(tmp_path / "lightfield")
