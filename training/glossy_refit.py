@@ -21,7 +21,8 @@ from __future__ import annotations
 import numpy as np
 
 from shaders.octahedral import pixel_directions, pixel_solid_angles
-from shaders.sg_math import ggx_brdf_cos, midpoint_parameters, orthonormal_tangents, sg_glossy, unit_midpoint
+from shaders.sg_math import (ggx_brdf_cos, midpoint_parameters, orthonormal_tangents, sg_glossy, sg_sum_eval,
+                             unit_midpoint)
 
 REFIT_VIEW_COSINES = tuple(np.linspace(0.1, 1.0, 10))  # n.v of the fitted views
 REFIT_VIEW_AZIMUTHS = 12
@@ -101,9 +102,8 @@ def encoding_error_split(images, normals, axis, sharpness, amplitude, roughness,
         views = hemisphere_views(normals[i], HELD_OUT_VIEW_COSINES, HELD_OUT_VIEW_AZIMUTHS)
         constant = np.asarray(images[i], np.float64).repeat(supersampling, 1).repeat(supersampling, 2)
         target = reflected_radiance_of_pixels(constant.reshape(len(i), -1, channels), normals[i], views, rough[i], fine)
-        lobes = np.exp(sharpness[i][:, None, :] * (np.einsum("pk,tnk->tpn", directions, axis[i]) - 1.0))
-        sgs = reflected_radiance_of_pixels(np.einsum("tpn,tnc->tpc", lobes, amplitude[i]), normals[i], views,
-                                           rough[i], fine)
+        radiance = sg_sum_eval(directions[None], axis[i][:, None], sharpness[i][:, None], amplitude[i][:, None])
+        sgs = reflected_radiance_of_pixels(radiance, normals[i], views, rough[i], fine)
         closed = np.einsum("tvn,tnc->tvc", closed_form_responses(axis[i], sharpness[i], normals[i], views, rough[i]),
                            amplitude[i])
         sums["fit"] += float(((sgs - target) ** 2).sum())
