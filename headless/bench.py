@@ -502,7 +502,7 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 16,
     from training.baselines import eval_sh
     from training.glossy_refit import encoding_error_split
     from training.sg_fit import glossy_error, reconstruct
-    from training.train_stage import texel_roughness, train_stage
+    from training.train_stage import evenly, texel_roughness, train_stage
 
     rows = []
 
@@ -544,8 +544,7 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 16,
             prediction = reconstruct(axis, sharpness, amplitude, images.shape[1])
             split = {}
             for value in np.unique(roughness):  # up to ENCODING_SPLIT_TEXELS evenly picked texels per sphere
-                each = np.flatnonzero(roughness == value)
-                each = each[np.linspace(0, len(each) - 1, min(ENCODING_SPLIT_TEXELS, len(each))).astype(int)]
+                each = evenly(np.flatnonzero(roughness == value), ENCODING_SPLIT_TEXELS)
                 split[f"{value:g}"] = {k: round(v, 4) for k, v in encoding_error_split(
                     images[each], normals[each], axis[each], sharpness[each], amplitude[each], value).items()}
         rows.append({"encoder": name, "bytes_per_texel": trained.bytes_per_texel,

@@ -99,7 +99,8 @@ def _error_members(atlas, texel_info: dict, texels, roughness, resolution: int, 
     return {name: index for name, index in members.items() if len(index)}
 
 
-def _evenly(items: np.ndarray, count: int) -> np.ndarray:
+def evenly(items: np.ndarray, count: int) -> np.ndarray:
+    """At most `count` of `items`, evenly spaced from the first to the last."""
     return items[np.linspace(0, len(items) - 1, min(len(items), count)).astype(int)]
 
 
@@ -113,7 +114,7 @@ def shaded_errors(images, normals, axis, sharpness, amplitude, atlas, texel_info
 
     errors = {}
     for name, members in _error_members(atlas, texel_info, texels, roughness, images.shape[1], only).items():
-        pick = _evenly(members, ERROR_TEXELS_PER_MATERIAL)
+        pick = evenly(members, ERROR_TEXELS_PER_MATERIAL)
         errors[name] = round(shaded_error(images[pick], normals[pick], axis[pick], sharpness[pick], amplitude[pick],
                                           roughness[pick]), 4)
     return errors
@@ -130,7 +131,7 @@ def interpolated_errors(images, normals, axis, sharpness, amplitude, atlas, texe
     for name, members in _error_members(atlas, texel_info, texels, roughness, images.shape[1], only).items():
         pairs = atlas_neighbour_pairs(texels[members])
         if len(pairs):
-            pick = members[_evenly(pairs, ERROR_TEXELS_PER_MATERIAL)]
+            pick = members[evenly(pairs, ERROR_TEXELS_PER_MATERIAL)]
             errors[name] = round(interpolated_shaded_error(images, normals, axis, sharpness, amplitude, roughness,
                                                            pick[:, 0], pick[:, 1]), 4)
     return errors
