@@ -173,6 +173,9 @@ def _shaded_error_summary(lightfield_metrics: dict) -> str:
     refit = lightfield_metrics.get("amplitude_refit", {})
     reverted = refit.get("reverted_for", {})
     text += f"; refit not kept for {', '.join(reverted)} (it raised the error)" if reverted else ""
+    reverted_between = refit.get("reverted_between_texels_for", {})
+    text += (f"; refit not kept for {', '.join(reverted_between)} (it raised the error between texels)"
+             if reverted_between else "")
     between = lightfield_metrics.get("interpolated_shaded_error", {})
     before = refit.get("lobes", {}).get("interpolated_error_before", {})
     if before and set(before) <= set(between):

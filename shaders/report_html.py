@@ -87,11 +87,12 @@ def write_report_html(out_dir) -> Path:
     rows += _error_rows("glossy error through the node group", lightfield.get("shaded_error", {}),
                         refit.get("shaded_error_before", {}), "the CNN's SGs")
     if refit:
-        reverted = refit.get("reverted_for", {})
+        not_kept = [f"; not kept for {material} (it raised the error to {error:.4f})"
+                    for material, error in refit.get("reverted_for", {}).items()]
+        not_kept += [f"; not kept for {material} (it raised the error between texels to {error:.4f})"
+                     for material, error in refit.get("reverted_between_texels_for", {}).items()]
         rows.append(("amplitude refit", f"{refit['texels']} texels at roughness >= {refit['min_roughness']} in "
-                                        f"{refit['seconds']:.1f} s" + "".join(
-                                            f"; not kept for {material} (it raised the error to {error:.4f})"
-                                            for material, error in reverted.items())))
+                                        f"{refit['seconds']:.1f} s" + "".join(not_kept)))
     lobes = refit.get("lobes", {})
     rows += _error_rows("glossy error between texels (SGs blended)", lightfield.get("interpolated_shaded_error", {}),
                         lobes.get("interpolated_error_before", {}), "before the lobe refit")

@@ -70,6 +70,53 @@ def test_a_lobe_below_the_horizon_keeps_its_amplitude_while_the_others_are_refit
     assert shaded_error(images, normals, axis, sharpness, refitted, np.full(8, 0.4)) < 0.65 * before  # 0.148 -> 0.088
 
 
+def test_a_refit_that_raises_the_error_between_texels_is_reverted(monkeypatch):
+    """Even texels have a fourth lobe below the horizon, odd ones above it: the bilinear lookup blends the two
+    into a lobe the viewer sees. Without the ridge floor the refit blows the hidden lobe up (the stop-33 bake:
+    1.02 -> 1317) while lowering the texels' own error; train_stage's guard measures between texels and brings the
+    trained amplitudes back. With the floor the refit is kept."""
+    from shaders.texel_maps import CHANNEL, TEXEL_CHANNELS
+    from training import glossy_refit
+    from training.train_stage import interpolated_errors, revert_where_worse_between_texels
+
+    rng = np.random.default_rng(4)
+    texel_count = 8
+    _, normals, axis, sharpness, amplitude = scene(texels=texel_count, seed=5)
+    below = [np.sin(np.radians(104)), 0.0, np.cos(np.radians(104))]
+    above = [np.sin(np.radians(40)), 0.0, np.cos(np.radians(40))]
+    fourth = np.where((np.arange(texel_count) % 2 == 0)[:, None], below, above)[:, None]
+    axis = np.concatenate([axis, fourth], 1)
+    sharpness = np.concatenate([sharpness, np.full((texel_count, 1), 81.0)], 1)
+    truth = np.concatenate([amplitude, np.ones((texel_count, 1, 3))], 1)
+    images = rendered(axis, sharpness, truth, normals)
+    trained = truth * rng.uniform(0.7, 1.3, truth.shape)
+    rough = np.full(texel_count, 0.4)
+    atlas = np.zeros((1, texel_count, len(TEXEL_CHANNELS)), np.float32)
+    atlas[..., CHANNEL["material_id"]] = 1
+    texels = np.stack([np.zeros(texel_count, int), np.arange(texel_count)], 1)
+    info = {"materials": [{"id": 1, "name": "Glossy"}]}
+    trained_between = interpolated_errors(images, normals, axis, sharpness, trained, atlas, info, texels, rough)
+
+    def refit_and_guard():
+        refitted = refit_amplitudes(images, normals, axis, sharpness, trained, rough)
+        assert shaded_error(images, normals, axis, sharpness, refitted, rough) < \
+            0.6 * shaded_error(images, normals, axis, sharpness, trained, rough)  # 0.150 -> 0.082 either way
+        between = interpolated_errors(images, normals, axis, sharpness, refitted, atlas, info, texels, rough)
+        return refitted, revert_where_worse_between_texels(trained, refitted, ["Glossy"], between, images, normals,
+                                                           axis, sharpness, atlas, info, texels, rough)
+
+    refitted, (result, kept, worse, now) = refit_and_guard()
+    assert refitted[:, 3].max() < 1.5 and kept == ["Glossy"] and worse == {}
+    assert now["Glossy"] < trained_between["Glossy"]  # 0.706 < 0.721
+    np.testing.assert_array_equal(result, refitted)
+    monkeypatch.setattr(glossy_refit, "REFIT_RIDGE_FLOOR", 0.0)
+    refitted, (result, kept, worse, now) = refit_and_guard()
+    assert refitted[:, 3].max() > 100  # 2081
+    assert kept == [] and worse["Glossy"] > 10 * trained_between["Glossy"]  # 27.7 against 0.72
+    assert now == trained_between
+    np.testing.assert_allclose(result, trained, rtol=1e-6)  # stored as the refit's float32
+
+
 def test_encoding_error_split_finds_a_wrong_fit_apart_from_the_closed_forms_error():
     """The SGs the light field was rendered from fit it (pixel averaging aside), and what remains is the closed
     form's own approximation; halved amplitudes miss half the reflected light, which the split calls fit error, while
