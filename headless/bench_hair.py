@@ -11,6 +11,9 @@
               Open Image Denoise (pyoidn) on the 4-spp input; on the validation pairs of the trained styles and on the held-out style apart.
               Targets: filtered 4 spp beats unfiltered 16 spp on both metrics, and beats OIDN on 4 spp.
   picture     bench_out/hair_rows.png: input 4 spp | ours | OIDN | reference, a few pairs of each split.
+  candidates  --candidate NAME=PATH (repeatable): another 4-spp model scored beside the shipped one on the same
+              renders (4 mirror passes), with per-pair differences against it and against 16 spp; Blender builds a
+              groom differently each run, so two models compare fairly only inside one run.
 """
 from __future__ import annotations
 
@@ -112,13 +115,16 @@ def _grooms():
     return get
 
 
-def bench_quality(models: dict, out_root: Path, max_pairs: int = 40, pictures: int = 3) -> dict:
+def bench_quality(models: dict, out_root: Path, max_pairs: int = 40, pictures: int = 3,
+                  candidates: dict | None = None) -> dict:
     """The dataset's views (headless/hair_dataset.py draws them from seeds, so no files are needed): its
-    validation pairs of the trained styles and its held-out style, input and Cycles reference rendered here."""
+    validation pairs of the trained styles and its held-out style, input and Cycles reference rendered here.
+    candidates: {name: path} of further 4-spp models, scored as "<name> 4 spp"."""
     from blender_addon.hair import render_reference
     from headless import hair_dataset
 
     filters = {spp: load_filter(path) for spp, path in models.items()}
+    candidate_filters = {f"{name} 4 spp": load_filter(path) for name, path in (candidates or {}).items()}
     groom = _grooms()
     jobs = hair_dataset.dataset_jobs(hair_dataset.PAIRS, hair_dataset.HELD_OUT)
     tables, rows_img = {}, []
@@ -144,6 +150,8 @@ def bench_quality(models: dict, out_root: Path, max_pairs: int = 40, pictures: i
                     for passes in (1, 2):
                         candidates[f"ours 4 spp, {passes} pass{'es' if passes > 1 else ''}"] = \
                             _composite(hair_filter.filter(render, passes=passes)[0])
+            for name, hair_filter in candidate_filters.items():
+                candidates[name] = _composite(hair_filter.filter(render, passes=4)[0])
             try:
                 candidates["OIDN on 4 spp"] = _oidn(candidates["stochastic 4 spp"])
             except ImportError:
@@ -166,6 +174,8 @@ def bench_quality(models: dict, out_root: Path, max_pairs: int = 40, pictures: i
                               for name, v in scores.items()}
         tables[split_name]["paired"] = paired_differences(scores, "ours 4 spp",
                                                           ("stochastic 16 spp", "OIDN on 4 spp"))
+        for name in candidate_filters:
+            tables[split_name]["paired"].update(paired_differences(scores, name, ("stochastic 16 spp", "ours 4 spp")))
     if rows_img:
         from shaders.bake_report import save_png
 
@@ -197,7 +207,7 @@ def shipped_models() -> dict:
     return {spp: MODELS_DIR / name for spp, name in names.items() if (MODELS_DIR / name).is_file()}
 
 
-def bench_hair(out_root: Path, quick: bool = False) -> dict:
+def bench_hair(out_root: Path, quick: bool = False, candidates: dict | None = None) -> dict:
     models = shipped_models()
     result = {"inference": bench_inference(models, size=256 if quick else 1024)}
     for row in result["inference"]:
@@ -208,7 +218,7 @@ def bench_hair(out_root: Path, quick: bool = False) -> dict:
               f"{row['stochastic_input_16spp_s']:.2f} s ({row['fragments']} fragments); {row['shadow_maps']} shadow maps "
               f"cost {row['stochastic_input_4spp_s'] / row['stochastic_input_4spp_one_shadow_map_s']:.2f}x one")
     if models:
-        result["quality"] = bench_quality(models, out_root, max_pairs=8 if quick else 40)
+        result["quality"] = bench_quality(models, out_root, max_pairs=8 if quick else 40, candidates=candidates)
         for split, table in result["quality"].items():
             print(f"\nhair quality, {split} (PSNR dB / FLIP, mean over pairs):")
             for name, row in table.items():
@@ -233,9 +243,17 @@ def main(argv=None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=Path("bench_out"))
     p.add_argument("--quick", action="store_true")
+    p.add_argument("--candidate", action="append", default=[], metavar="NAME=PATH",
+                   help="another 4-spp ONNX model to score beside the shipped one (repeatable)")
     ns = p.parse_args(argv)
+    candidates = {}
+    for item in ns.candidate:
+        name, _, path = item.partition("=")
+        if not name or not path or not Path(path).is_file():
+            p.error(f"--candidate {item!r}: expected NAME=PATH of an existing ONNX file")
+        candidates[name] = Path(path)
     ns.out.mkdir(parents=True, exist_ok=True)
-    result = bench_hair(ns.out, ns.quick)
+    result = bench_hair(ns.out, ns.quick, candidates)
     write_json_atomic(ns.out / "bench_hair.json", result)
     return 0
 

@@ -17,11 +17,11 @@ import numpy as np
 try:
     from .atomic import atomic_output
     from .exr_io import read_exr, write_exr
-    from .hair_raster import FEATURE_NAMES, OUTPUT_NAMES
+    from .hair_raster import EVALUATION_LOOK, FEATURE_NAMES, OUTPUT_NAMES, composite
 except ImportError:
     from shaders.atomic import atomic_output
     from shaders.exr_io import read_exr, write_exr
-    from shaders.hair_raster import FEATURE_NAMES, OUTPUT_NAMES
+    from shaders.hair_raster import EVALUATION_LOOK, FEATURE_NAMES, OUTPUT_NAMES, composite
 
 PAIR_SAMPLES = 4
 VALIDATION_EVERY = 10
@@ -77,3 +77,30 @@ def complete_indices(directory) -> list[int]:
         if is_complete(directory, index):
             found.append(index)
     return found
+
+
+def noise_share(features: np.ndarray, target: np.ndarray) -> float:
+    """How much of the unfiltered input's error is sampling noise, in [0, 1]: the variance of the mean of its
+    samples over its squared error against the target, both of the composite in the bench's look
+    (hair_raster.EVALUATION_LOOK) in linear radiance. features (6*S, H, W) as read_pair gives them. More samples
+    remove only this share (16 instead of 4: 3/4 of it), so a view with a high share is one where unfiltered
+    16 spp gains most over 4. Linear, not tone-mapped: from 4 covered-or-not samples a pixel's tone-mapped
+    variance is too noisy an estimate (0.4-1.0 on unbiased views, against 0.9-1.2 linear)."""
+    per_sample = len(FEATURE_NAMES)
+    samples = features.shape[0] // per_sample
+    if samples < 2:
+        raise ValueError("the noise share needs at least 2 samples per pixel")
+    hair_color, light, grey = EVALUATION_LOOK
+    background = np.full(features.shape[1:] + (3,), grey)
+    # Plain stochastic transparency composites as the mean of its samples' composites (each sample covered or not).
+    images = []
+    for s in range(samples):
+        colour, highlight, alpha = features[s * per_sample:s * per_sample + 3].astype(np.float64)
+        covered = alpha > 0
+        images.append(composite(np.stack([np.where(covered, colour, 1.0), np.where(covered, highlight, 0.0),
+                                          covered.astype(np.float64)]), hair_color, background, light))
+    images = np.stack(images)
+    noise = float(images.var(axis=0, ddof=1).sum()) / samples
+    error = float(((images.mean(axis=0) - composite(target.astype(np.float64), hair_color, background,
+                                                     light)) ** 2).sum())
+    return min(1.0, noise / error) if error > 0 else 0.0

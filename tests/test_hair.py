@@ -223,6 +223,68 @@ def test_training_checkpoints_resumes_and_exports_a_filter_onnxruntime_agrees_wi
         load_filter(tmp_path / "foreign.onnx")
 
 
+def test_noise_share_predicts_what_sixteen_samples_gain_over_four():
+    """Real renders of 320 samples: four blocks of 16 (whose first 4 are the input), and the mean of the last 256
+    as the target, also with the hair's colour and highlight scaled by 0.5 and 0.25 (biased inputs). Over the
+    blocks, in linear radiance, 1 - 3/4 x share is what 16 samples leave of 4 samples' error; tone-mapped, the
+    shares keep the order of what 16 samples gain (the bench's metrics are tone-mapped)."""
+    import dataclasses
+
+    from shaders.image_metrics import tonemap
+
+    rng = np.random.default_rng(5)
+    curves = [(rng.uniform(-0.1, 0.1, 3), rng.uniform(-0.1, 0.1, 3)) for _ in range(80)]
+    strands = straight_strands(curves, radius=0.0008)
+    hair_color, light, grey = hr.EVALUATION_LOOK
+
+    def composite(outputs):
+        return hr.composite(outputs, hair_color, np.full(outputs.shape[1:] + (3,), grey), light)
+
+    for _ in range(2):
+        render = hr.render_stochastic(strands, hr.random_camera(rng, *strands.bounds(), 48), hr.random_light(rng),
+                                      320, shadow_map_size=128)
+        blocks = [dataclasses.replace(render, features=render.features[16 * b:16 * b + 16]) for b in range(4)]
+        clean = dataclasses.replace(render, features=render.features[64:]).unfiltered()
+        shares, tone_mapped_left = [], []
+        for scale in (1.0, 0.5, 0.25):
+            target = clean * np.array([scale, scale, 1.0])[:, None, None]
+            shares.append(np.mean([hair_pairs.noise_share(block.network_input(4)[0], target) for block in blocks]))
+            linear, mapped = np.zeros(2), np.zeros(2)
+            for block in blocks:
+                for i, n in enumerate((4, 16)):
+                    image = composite(block.unfiltered(n))
+                    linear[i] += ((image - composite(target)) ** 2).sum()
+                    mapped[i] += ((tonemap(image) - tonemap(composite(target))) ** 2).sum()
+            assert abs((1 - 0.75 * shares[-1]) - linear[1] / linear[0]) < 0.06, (scale, shares[-1], linear)
+            tone_mapped_left.append(mapped[1] / mapped[0])
+        assert shares[0] > 0.85 and shares[0] > shares[1] > shares[2]
+        assert tone_mapped_left[0] < tone_mapped_left[1] < tone_mapped_left[2]
+    with pytest.raises(ValueError, match="at least 2 samples"):
+        hair_pairs.noise_share(blocks[0].network_input(1)[0], clean)
+
+
+def test_training_draws_pairs_by_their_noise_share(tmp_path):
+    import torch
+
+    from training import hair_train
+
+    _tiny_dataset(tmp_path, pairs=4, size=32)
+    *_, shares = hair_train.load_pairs(tmp_path, 4, with_noise_shares=True)
+    assert shares.shape == (4,) and bool(((shares >= 0) & (shares <= 1)).all())
+    assert hair_train.pair_weights(shares, 0.0) is None
+    weights = hair_train.pair_weights(torch.tensor([0.1, 0.4, 0.0], dtype=torch.float64), 2.0)
+    np.testing.assert_allclose(weights.numpy(), [0.01 / 0.170001, 0.16 / 0.170001, 1e-6 / 0.170001])
+    inputs = torch.arange(3.0).view(3, 1, 1, 1).expand(3, 24, 32, 32).contiguous()
+    x, _ = hair_train.random_crops(inputs, torch.zeros(3, 3, 32, 32), 200, torch.Generator().manual_seed(0),
+                                   weights)
+    picked = np.bincount(x[:, 0, 0, 0].abs().long().numpy(), minlength=3)
+    assert picked[1] > 150 and picked[2] == 0
+    result = hair_train.train(tmp_path, "small", 1.0, tmp_path / "work", batch=2, noise_emphasis=1.0)
+    assert result["step"] > 0 and result["noise_emphasis"] == 1.0
+    assert result["noise_share_quartiles"] == sorted(result["noise_share_quartiles"])
+    assert result["noise_share_quartiles"][0] == pytest.approx(float(shares.min()), abs=1e-3)
+
+
 def test_bad_model_files_give_one_clear_message(tmp_path):
     with pytest.raises(HairFilterError, match="not found"):
         load_filter(tmp_path / "missing.onnx")

@@ -3,12 +3,13 @@
     python -m training.hair_train --data hair_data/train --config base+blend --flip-weight 0.3 --budget 1800 \
         --out models/hair_base.onnx
 
-Random 64x64 crops (flipped left-right with tangent x negated), Adam (rate x0.3 after 70 % of the budget, x0.1
-after 90 %). Loss: the paper's (--loss, --gradient-weight); --flip-weight adds LDR-FLIP of the composites, each
-training crop composited with a random hair colour, light and grey background, validation with
-hair_raster.EVALUATION_LOOK. Validation loss on the validation pairs after every epoch, the best weights kept.
-Checkpoints (weights_only, atomic) every epoch in --work; --resume continues from the last one. Progress bar with
-ETA on stderr.
+Random 64x64 crops (flipped left-right with tangent x negated; --noise-emphasis g draws a pair with probability
+proportional to its noise share to the power g, hair_pairs.noise_share: the views where more samples help most),
+Adam (rate x0.3 after 70 % of the budget, x0.1 after 90 %). Loss: the paper's (--loss, --gradient-weight);
+--flip-weight adds LDR-FLIP of the composites, each training crop composited with a random hair colour, light and
+grey background, validation with hair_raster.EVALUATION_LOOK. Validation loss on the validation pairs after every
+epoch, the best weights kept. Checkpoints (weights_only, atomic) every epoch in --work; --resume continues from the
+last one. Progress bar with ETA on stderr.
 """
 from __future__ import annotations
 
@@ -33,9 +34,11 @@ LR_STEPS = ((0.7, 0.3), (0.9, 0.1))  # (share of the budget, learning-rate facto
 TANGENT_X = 4  # feature index inside a sample
 
 
-def load_pairs(directory, samples: int):
-    """(train inputs, train targets, validation inputs, validation targets) as float16 tensors."""
+def load_pairs(directory, samples: int, with_noise_shares: bool = False):
+    """(train inputs, train targets, validation inputs, validation targets) as float16 tensors, and with
+    with_noise_shares the training pairs' noise shares (float64 tensor) after them."""
     split = {"train": ([], []), "validation": ([], [])}
+    shares = []
     indices = hair_pairs.complete_indices(directory)
     if not indices:
         raise FileNotFoundError(f"no complete hair pairs in {directory}")
@@ -43,17 +46,30 @@ def load_pairs(directory, samples: int):
         features, target, meta = hair_pairs.read_pair(directory, index, samples)
         split[meta["split"]][0].append(torch.from_numpy(features).half())
         split[meta["split"]][1].append(torch.from_numpy(target).half())
+        if with_noise_shares and meta["split"] == "train":
+            shares.append(hair_pairs.noise_share(features, target))
     out = []
     for name in ("train", "validation"):
         xs, ys = split[name]
         out += [torch.stack(xs) if xs else None, torch.stack(ys) if ys else None]
+    if with_noise_shares:
+        out.append(torch.tensor(shares, dtype=torch.float64))
     return tuple(out)
 
 
-def random_crops(inputs, targets, batch: int, generator: torch.Generator):
+def pair_weights(noise_shares: torch.Tensor, emphasis: float):
+    """Drawing probabilities of the training pairs: noise share ** emphasis, normalised (None: uniform)."""
+    if not emphasis:
+        return None
+    weights = noise_shares.clamp(min=1e-3) ** emphasis
+    return weights / weights.sum()
+
+
+def random_crops(inputs, targets, batch: int, generator: torch.Generator, weights=None):
     n, _, h, w = inputs.shape
     crop = min(CROP, h, w)
-    pick = torch.randint(0, n, (batch,), generator=generator)
+    pick = torch.randint(0, n, (batch,), generator=generator) if weights is None else \
+        torch.multinomial(weights, batch, replacement=True, generator=generator)
     ys = torch.randint(0, h - crop + 1, (batch,), generator=generator)
     xs = torch.randint(0, w - crop + 1, (batch,), generator=generator)
     flips = torch.rand(batch, generator=generator) < 0.5
@@ -85,10 +101,12 @@ def validation_loss(model, inputs, targets, gradient_weight: float = 1.0, norm: 
 
 def train(data: Path, config_name: str, budget_s: float, work: Path, resume: bool = False, batch: int = 8,
           lr: float = 1e-3, seed: int = 0, gradient_weight: float = 1.0, norm: str = "l2",
-          flip_weight: float = 0.0, progress=lambda fraction, message: None) -> dict:
+          flip_weight: float = 0.0, noise_emphasis: float = 0.0, progress=lambda fraction, message: None) -> dict:
     config = HairNetConfig.named(config_name)
     torch.manual_seed(seed)
-    train_x, train_y, val_x, val_y = load_pairs(data, config.samples)
+    train_x, train_y, val_x, val_y, *shares = load_pairs(data, config.samples,
+                                                         with_noise_shares=bool(noise_emphasis))
+    weights = pair_weights(shares[0], noise_emphasis) if shares else None
     model = HairUNet(config)
     optimizer = torch.optim.Adam(model.parameters(), lr=lr)
     generator = torch.Generator().manual_seed(seed)
@@ -106,13 +124,17 @@ def train(data: Path, config_name: str, budget_s: float, work: Path, resume: boo
         if loss_was != (gradient_weight, norm, flip_weight):
             state["best_validation"] = float("inf")  # another loss: old validation values don't compare
     state["gradient_weight"], state["loss_norm"], state["flip_weight"] = gradient_weight, norm, flip_weight
+    state["noise_emphasis"] = noise_emphasis
+    if shares:
+        state["noise_share_quartiles"] = [round(float(q), 3) for q in torch.quantile(
+            shares[0], torch.tensor([0.0, 0.25, 0.5, 0.75, 1.0], dtype=torch.float64))]
     crops_per_image = max(1, train_x.shape[-1] // CROP) * max(1, train_x.shape[-2] // CROP)
     steps_per_epoch = max(1, len(train_x) * crops_per_image // batch)
     start = time.monotonic() - state["elapsed_s"]
     while time.monotonic() - start < budget_s:
         running = 0.0
         for _ in range(steps_per_epoch):
-            x, y = random_crops(train_x, train_y, batch, generator)
+            x, y = random_crops(train_x, train_y, batch, generator, weights)
             share = (time.monotonic() - start) / budget_s
             for group in optimizer.param_groups:
                 group["lr"] = lr * min([1.0] + [factor for at, factor in LR_STEPS if share >= at])
@@ -160,13 +182,17 @@ def main(argv=None) -> int:
                    help="l2: the paper's squared errors; l1: absolute errors")
     p.add_argument("--flip-weight", type=float, default=0.0,
                    help="weight of an LDR-FLIP term on the composited, tone-mapped images (0: the paper's loss)")
+    p.add_argument("--noise-emphasis", type=float, default=0.0,
+                   help="draw pairs with probability ~ noise share ** this (0: uniform, the paper's)")
     ns = p.parse_args(argv)
+    if not 0 <= ns.noise_emphasis <= 8:
+        p.error("--noise-emphasis must be in 0..8")
     if ns.threads:
         torch.set_num_threads(ns.threads)
     reporter = Reporter(as_json=False)
     try:
         result = train(ns.data, ns.config, ns.budget, ns.work, ns.resume, lr=ns.lr, gradient_weight=ns.gradient_weight,
-                       norm=ns.loss, flip_weight=ns.flip_weight,
+                       norm=ns.loss, flip_weight=ns.flip_weight, noise_emphasis=ns.noise_emphasis,
                        progress=lambda f, m: reporter.progress("train", f, m))
     except (FileNotFoundError, ValueError) as error:
         reporter.end_bar()
