@@ -29,7 +29,7 @@ if __package__ in (None, ""):
 
 from shaders import hair_pairs, hair_raster  # noqa: E402
 from shaders.bake_plan import write_json_atomic  # noqa: E402
-from shaders.hair_filter import load_filter  # noqa: E402
+from shaders.hair_filter import HairFilterError, load_filter  # noqa: E402
 from shaders.image_metrics import flip, psnr, tonemap  # noqa: E402
 
 MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
@@ -116,15 +116,18 @@ def _grooms():
 
 
 def bench_quality(models: dict, out_root: Path, max_pairs: int = 40, pictures: int = 3,
-                  candidates: dict | None = None) -> dict:
+                  extra_models: dict | None = None) -> dict:
     """The dataset's views (headless/hair_dataset.py draws them from seeds, so no files are needed): its
     validation pairs of the trained styles and its held-out style, input and Cycles reference rendered here.
-    candidates: {name: path} of further 4-spp models, scored as "<name> 4 spp"."""
+    extra_models: {name: path} of further 4-spp models, scored as "<name> 4 spp"."""
     from blender_addon.hair import render_reference
     from headless import hair_dataset
 
     filters = {spp: load_filter(path) for spp, path in models.items()}
-    candidate_filters = {f"{name} 4 spp": load_filter(path) for name, path in (candidates or {}).items()}
+    candidate_filters = {f"{name} 4 spp": load_filter(path) for name, path in (extra_models or {}).items()}
+    for name, hair_filter in candidate_filters.items():
+        if hair_filter.samples != 4:
+            raise ValueError(f"{name}: a {hair_filter.samples}-spp filter; the candidates are scored at 4 spp")
     groom = _grooms()
     jobs = hair_dataset.dataset_jobs(hair_dataset.PAIRS, hair_dataset.HELD_OUT)
     tables, rows_img = {}, []
@@ -218,7 +221,7 @@ def bench_hair(out_root: Path, quick: bool = False, candidates: dict | None = No
               f"{row['stochastic_input_16spp_s']:.2f} s ({row['fragments']} fragments); {row['shadow_maps']} shadow maps "
               f"cost {row['stochastic_input_4spp_s'] / row['stochastic_input_4spp_one_shadow_map_s']:.2f}x one")
     if models:
-        result["quality"] = bench_quality(models, out_root, max_pairs=8 if quick else 40, candidates=candidates)
+        result["quality"] = bench_quality(models, out_root, max_pairs=8 if quick else 40, extra_models=candidates)
         for split, table in result["quality"].items():
             print(f"\nhair quality, {split} (PSNR dB / FLIP, mean over pairs):")
             for name, row in table.items():
@@ -251,6 +254,12 @@ def main(argv=None) -> int:
         name, _, path = item.partition("=")
         if not name or not path or not Path(path).is_file():
             p.error(f"--candidate {item!r}: expected NAME=PATH of an existing ONNX file")
+        try:
+            samples = load_filter(path).samples
+        except HairFilterError as error:
+            p.error(f"--candidate {item!r}: {error}")
+        if samples != 4:
+            p.error(f"--candidate {item!r}: a {samples}-spp filter; candidates are scored at 4 spp")
         candidates[name] = Path(path)
     ns.out.mkdir(parents=True, exist_ok=True)
     result = bench_hair(ns.out, ns.quick, candidates)
