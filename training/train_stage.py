@@ -174,15 +174,12 @@ def revert_where_worse_between_texels(trained, current, kept: list, between: dic
         return current, kept, {}, between
     trained_between = interpolated_errors(images, normals, axis, sharpness, trained, atlas, texel_info, texels,
                                           roughness, only=measured)
-    worse = {name: between[name] for name in measured if between[name] > trained_between[name]}
-    if not worse:
+    # keep_refit_where_better with the roles swapped: the trained amplitudes are taken where they are better.
+    (result,), back, _ = keep_refit_where_better((current,), (trained,), {name: between[name] for name in measured},
+                                                 trained_between, atlas, texel_info, texels)
+    if not back:
         return current, kept, {}, between
-    result = np.array(current, copy=True)
-    material_ids = texel_material_ids(atlas, texels)
-    for material in texel_info["materials"]:
-        if material["name"] in worse:
-            members = material_ids == material["id"]
-            result[members] = trained[members]
+    worse = {name: between[name] for name in back}
     return (result, [name for name in kept if name not in worse], worse,
             {name: trained_between[name] if name in worse else error for name, error in between.items()})
 
