@@ -115,6 +115,15 @@ def _grooms():
     return get
 
 
+def candidate_filter(path):
+    """A further model to score beside the shipped one: a readable hair filter of 4 samples per pixel, or
+    HairFilterError / ValueError saying why not."""
+    hair_filter = load_filter(path)
+    if hair_filter.samples != 4:
+        raise ValueError(f"a {hair_filter.samples}-spp filter; candidates are scored at 4 spp")
+    return hair_filter
+
+
 def bench_quality(models: dict, out_root: Path, max_pairs: int = 40, pictures: int = 3,
                   extra_models: dict | None = None) -> dict:
     """The dataset's views (headless/hair_dataset.py draws them from seeds, so no files are needed): its
@@ -124,10 +133,7 @@ def bench_quality(models: dict, out_root: Path, max_pairs: int = 40, pictures: i
     from headless import hair_dataset
 
     filters = {spp: load_filter(path) for spp, path in models.items()}
-    candidate_filters = {f"{name} 4 spp": load_filter(path) for name, path in (extra_models or {}).items()}
-    for name, hair_filter in candidate_filters.items():
-        if hair_filter.samples != 4:
-            raise ValueError(f"{name}: a {hair_filter.samples}-spp filter; the candidates are scored at 4 spp")
+    candidate_filters = {f"{name} 4 spp": candidate_filter(path) for name, path in (extra_models or {}).items()}
     groom = _grooms()
     jobs = hair_dataset.dataset_jobs(hair_dataset.PAIRS, hair_dataset.HELD_OUT)
     tables, rows_img = {}, []
@@ -255,11 +261,9 @@ def main(argv=None) -> int:
         if not name or not path or not Path(path).is_file():
             p.error(f"--candidate {item!r}: expected NAME=PATH of an existing ONNX file")
         try:
-            samples = load_filter(path).samples
-        except HairFilterError as error:
+            candidate_filter(path)  # checked before the bench's minutes of rendering
+        except (HairFilterError, ValueError) as error:
             p.error(f"--candidate {item!r}: {error}")
-        if samples != 4:
-            p.error(f"--candidate {item!r}: a {samples}-spp filter; candidates are scored at 4 spp")
         candidates[name] = Path(path)
     ns.out.mkdir(parents=True, exist_ok=True)
     result = bench_hair(ns.out, ns.quick, candidates)
