@@ -5,7 +5,8 @@
 
 Random 64x64 crops (flipped left-right with tangent x negated; --noise-emphasis g draws a pair with probability
 proportional to its noise share to the power g, hair_pairs.noise_share: the views where more samples help most),
-Adam (rate x0.3 after 70 % of the budget, x0.1 after 90 %). Loss: the paper's (--loss, --gradient-weight);
+Adam (rate x0.3 after 70 % of the budget, x0.1 after 90 %; the budget is --budget seconds, or --steps, which gives the
+same training whatever else the machine runs). Loss: the paper's (--loss, --gradient-weight);
 --flip-weight adds LDR-FLIP of the composites, each training crop composited with a random hair colour, light and
 grey background, validation with hair_raster.EVALUATION_LOOK. Validation loss on the validation pairs after every
 epoch, the best weights kept. Checkpoints (weights_only, atomic) every epoch in --work; --resume continues from the
@@ -101,7 +102,9 @@ def validation_loss(model, inputs, targets, gradient_weight: float = 1.0, norm: 
 
 def train(data: Path, config_name: str, budget_s: float, work: Path, resume: bool = False, batch: int = 8,
           lr: float = 1e-3, seed: int = 0, gradient_weight: float = 1.0, norm: str = "l2",
-          flip_weight: float = 0.0, noise_emphasis: float = 0.0, progress=lambda fraction, message: None) -> dict:
+          flip_weight: float = 0.0, noise_emphasis: float = 0.0, progress=lambda fraction, message: None,
+          max_steps: int | None = None) -> dict:
+    """Train for budget_s seconds, or with max_steps for that many steps (budget_s is then ignored)."""
     config = HairNetConfig.named(config_name)
     torch.manual_seed(seed)
     train_x, train_y, val_x, val_y, *shares = load_pairs(data, config.samples,
@@ -131,11 +134,17 @@ def train(data: Path, config_name: str, budget_s: float, work: Path, resume: boo
     crops_per_image = max(1, train_x.shape[-1] // CROP) * max(1, train_x.shape[-2] // CROP)
     steps_per_epoch = max(1, len(train_x) * crops_per_image // batch)
     start = time.monotonic() - state["elapsed_s"]
-    while time.monotonic() - start < budget_s:
+
+    def budget_used() -> float:
+        if max_steps is not None:
+            return state["step"] / max(max_steps, 1)
+        return (time.monotonic() - start) / budget_s
+
+    while budget_used() < 1.0:
         running = 0.0
         for _ in range(steps_per_epoch):
             x, y = random_crops(train_x, train_y, batch, generator, weights)
-            share = (time.monotonic() - start) / budget_s
+            share = budget_used()
             for group in optimizer.param_groups:
                 group["lr"] = lr * min([1.0] + [factor for at, factor in LR_STEPS if share >= at])
             optimizer.zero_grad()
@@ -145,9 +154,9 @@ def train(data: Path, config_name: str, budget_s: float, work: Path, resume: boo
             optimizer.step()
             running += loss.item()
             state["step"] += 1
-            elapsed = time.monotonic() - start
-            progress(min(elapsed / budget_s, 1.0), f"step {state['step']} loss {loss.item():.5f}")
-            if elapsed >= budget_s:
+            used = budget_used()
+            progress(min(used, 1.0), f"step {state['step']} loss {loss.item():.5f}")
+            if used >= 1.0:
                 break
         val = validation_loss(model, val_x, val_y, gradient_weight, norm, flip_weight)
         state["elapsed_s"] = time.monotonic() - start
@@ -171,7 +180,9 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m training.hair_train", description=__doc__.splitlines()[0])
     p.add_argument("--data", type=Path, required=True, help="the train/ directory of a hair dataset")
     p.add_argument("--config", default="base", choices=sorted(CONFIGS))
-    p.add_argument("--budget", type=float, default=900.0, help="training seconds")
+    budget = p.add_mutually_exclusive_group()
+    budget.add_argument("--budget", type=float, default=900.0, help="training seconds")
+    budget.add_argument("--steps", type=int, help="training steps instead of seconds: the same run on a busy machine")
     p.add_argument("--out", type=Path, required=True, help="ONNX file to write")
     p.add_argument("--work", type=Path, default=Path("bench_out/hair_work"), help="checkpoints")
     p.add_argument("--resume", action="store_true")
@@ -187,13 +198,15 @@ def main(argv=None) -> int:
     ns = p.parse_args(argv)
     if not 0 <= ns.noise_emphasis <= 8:
         p.error("--noise-emphasis must be in 0..8")
+    if ns.steps is not None and ns.steps < 1:
+        p.error("--steps must be at least 1")
     if ns.threads:
         torch.set_num_threads(ns.threads)
     reporter = Reporter(as_json=False)
     try:
         result = train(ns.data, ns.config, ns.budget, ns.work, ns.resume, lr=ns.lr, gradient_weight=ns.gradient_weight,
                        norm=ns.loss, flip_weight=ns.flip_weight, noise_emphasis=ns.noise_emphasis,
-                       progress=lambda f, m: reporter.progress("train", f, m))
+                       progress=lambda f, m: reporter.progress("train", f, m), max_steps=ns.steps)
     except (FileNotFoundError, ValueError) as error:
         reporter.end_bar()
         print(f"error: {error}", file=sys.stderr)
