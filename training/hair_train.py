@@ -1,6 +1,6 @@
 """Train the hair filter on pairs from headless/hair_dataset.py and export it to ONNX.
 
-    python -m training.hair_train --data hair_data/train --config base+blend --flip-weight 0.3 --budget 1800 \
+    python -m training.hair_train --data hair_data/train --config base+blend --flip-weight 0.3 --steps 21000 \
         --out models/hair_base.onnx
 
 Random 64x64 crops (flipped left-right with tangent x negated; --noise-emphasis g draws a pair with probability
