@@ -200,6 +200,8 @@ def main(argv=None) -> int:
         p.error("--noise-emphasis must be in 0..8")
     if ns.steps is not None and ns.steps < 1:
         p.error("--steps must be at least 1")
+    if not ns.budget > 0:
+        p.error("--budget must be more than 0 seconds")
     if ns.threads:
         torch.set_num_threads(ns.threads)
     reporter = Reporter(as_json=False)
