@@ -286,6 +286,21 @@ def test_training_draws_pairs_by_their_noise_share(tmp_path):
     assert result["noise_share_quartiles"][0] == pytest.approx(float(shares.min()), abs=1e-3)
 
 
+def test_training_command_refuses_absurd_budgets_with_one_message(tmp_path, capsys):
+    from training import hair_train
+
+    for arguments, message in ((["--steps", "0"], "--steps must be at least 1"),
+                               (["--budget", "0"], "--budget must be more than 0 seconds"),
+                               (["--budget", "nan"], "--budget must be more than 0 seconds"),
+                               (["--steps", "5", "--budget", "3"], "not allowed with argument"),
+                               (["--noise-emphasis", "9"], "--noise-emphasis must be in 0..8")):
+        with pytest.raises(SystemExit) as exit_info:
+            hair_train.main(["--data", str(tmp_path), "--out", str(tmp_path / "m.onnx"), *arguments])
+        assert exit_info.value.code == 2
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "m.onnx").exists()
+
+
 def test_bad_model_files_give_one_clear_message(tmp_path):
     with pytest.raises(HairFilterError, match="not found"):
         load_filter(tmp_path / "missing.onnx")
