@@ -362,11 +362,12 @@ def render_background(scene, camera_obj, width: int, height: int, samples: int, 
 
 
 def filter_hair(scene, out_dir, model_path=None, width: int | None = None, height: int | None = None,
-                background_samples: int = 16, passes: int = DEFAULT_PASSES,
+                background_samples: int = 16, passes: int = DEFAULT_PASSES, network: str = "base",
                 progress=lambda fraction, message: None) -> HairFilterResult:
     """Render the cheap stochastic input for the scene's camera, filter it with the ONNX model through
     onnxruntime, composite colour factor x hair colour + highlight over a Cycles render of the rest of the
-    scene, and write filtered.exr / filtered.png / unfiltered.png / hair_filter.json into out_dir."""
+    scene, and write filtered.exr / filtered.png / unfiltered.png / hair_filter.json into out_dir. The model is
+    `model_path`, or else the shipped `network` (base: faster; large: more accurate)."""
     try:
         from ..shaders.bake_report import save_png
         from ..shaders.hair_filter import load_filter
@@ -388,7 +389,7 @@ def filter_hair(scene, out_dir, model_path=None, width: int | None = None, heigh
     objects = hair_objects(scene)
     if not objects:
         raise BakeInputError(f"scene '{scene.name}' has no hair to filter (no render-visible curves object)")
-    hair_filter = load_filter(model_path)  # a bad model fails before any rendering
+    hair_filter = load_filter(model_path, network=network)  # a bad model fails before any rendering
     out_dir = Path(out_dir)
     with active_scene(scene):
         depsgraph = bpy.context.evaluated_depsgraph_get()

@@ -264,7 +264,8 @@ class SGLF_OT_filter_hair(bpy.types.Operator):
             model = settings_path(panel.hair_model, "hair filter model") if panel.hair_model.strip() else None
             result = hair.filter_hair(context.scene, out_dir, model_path=model,
                                       background_samples=panel.hair_background_samples,
-                                      passes=int(panel.hair_filter_passes), progress=progress)
+                                      passes=int(panel.hair_filter_passes), network=panel.hair_network.lower(),
+                                      progress=progress)
         except (BakeInputError, HairFilterError, OSError) as exc:
             self.report({"ERROR"}, f"Filter Hair: {exc}")
             return {"CANCELLED"}

@@ -40,6 +40,7 @@ def draw_sg_lightfield(layout, context):
     if any(obj.type == "CURVES" for obj in context.scene.objects):
         box = layout.box()
         box.label(text="Hair Filter", icon="CURVES")
+        box.prop(settings, "hair_network")
         box.prop(settings, "hair_model")
         box.prop(settings, "hair_output_dir")
         box.prop(settings, "hair_background_samples")

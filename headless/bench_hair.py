@@ -11,9 +11,10 @@
               Open Image Denoise (pyoidn) on the 4-spp input; on the validation pairs of the trained styles and on the held-out style apart.
               Targets: filtered 4 spp beats unfiltered 16 spp on both metrics, and beats OIDN on 4 spp.
   picture     bench_out/hair_rows.png: input 4 spp | ours | OIDN | reference, a few pairs of each split.
-  candidates  --candidate NAME=PATH (repeatable): another 4-spp model scored beside the shipped one on the same
-              renders (4 mirror passes), with per-pair differences against it and against 16 spp; Blender builds a
-              groom differently each run, so two models compare fairly only inside one run.
+  candidates  the shipped Large network ("large"), and --candidate NAME=PATH (repeatable): further 4-spp models
+              scored beside the shipped Base one on the same renders (4 mirror passes), timed at 1024x1024 too, with
+              per-pair differences against it and against 16 spp; Blender builds a groom differently each run, so
+              two models compare fairly only inside one run.
 """
 from __future__ import annotations
 
@@ -29,7 +30,7 @@ if __package__ in (None, ""):
 
 from shaders import hair_pairs, hair_raster  # noqa: E402
 from shaders.bake_plan import write_json_atomic  # noqa: E402
-from shaders.hair_filter import HairFilterError, load_filter  # noqa: E402
+from shaders.hair_filter import SHIPPED_MODELS, HairFilterError, load_filter  # noqa: E402
 from shaders.image_metrics import flip, psnr, tonemap  # noqa: E402
 
 MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
@@ -47,7 +48,7 @@ def _oidn(image):
     return np.asarray(pyoidn.denoise(np.ascontiguousarray(image, np.float32), hdr=True), np.float64)
 
 
-def bench_inference(models: dict, size: int = 1024, repeats: int = 3) -> list[dict]:
+def bench_inference(models: dict, size: int = 1024, repeats: int = 3, more_4spp_models=()) -> list[dict]:
     import bpy
 
     from blender_addon import hair
@@ -71,7 +72,7 @@ def bench_inference(models: dict, size: int = 1024, repeats: int = 3) -> list[di
     start = time.perf_counter()
     hair_raster.render_stochastic(strands, camera, to_light, 4, shadow_maps=1)
     input_one_map_s = time.perf_counter() - start
-    for spp, path in sorted(models.items()):
+    for spp, path in sorted(models.items()) + [(4, Path(path)) for path in more_4spp_models]:
         hair_filter = load_filter(path)
         features = render.network_input(hair_filter.samples)
         hair_filter.run(features)  # warm-up
@@ -217,8 +218,13 @@ def shipped_models() -> dict:
 
 
 def bench_hair(out_root: Path, quick: bool = False, candidates: dict | None = None) -> dict:
+    """The shipped Large network is scored as the candidate "large" beside the shipped Base one."""
     models = shipped_models()
-    result = {"inference": bench_inference(models, size=256 if quick else 1024)}
+    candidates = dict(candidates or {})
+    if SHIPPED_MODELS["large"].is_file():
+        candidates.setdefault("large", SHIPPED_MODELS["large"])
+    result = {"inference": bench_inference(models, size=256 if quick else 1024,
+                                           more_4spp_models=candidates.values())}
     for row in result["inference"]:
         print(f"hair inference {row['model']:<24} {row['size']}: onnxruntime CPU {row['onnxruntime_cpu_s']:.3f} s "
               f"(filter with 1 pass {row['filter_1_pass_s']:.3f} s, "

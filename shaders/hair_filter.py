@@ -20,7 +20,11 @@ try:
 except ImportError:
     from shaders.hair_raster import FEATURE_NAMES, StochasticRender
 
-SHIPPED_MODEL = Path(__file__).resolve().parent.parent / "models" / "hair_base.onnx"
+SHIPPED_MODELS = {  # the 4-spp networks shipped in models/; docs/design-additions.md §22 measures both
+    "base": Path(__file__).resolve().parent.parent / "models" / "hair_base.onnx",  # 1.7 s at 1024^2, 4 passes
+    "large": Path(__file__).resolve().parent.parent / "models" / "hair_large.onnx",  # 5.3 s, 0.002 lower FLIP
+}
+SHIPPED_MODEL = SHIPPED_MODELS["base"]
 MIRRORS = {1: ((False, False),), 2: ((False, False), (True, False)),
            4: ((False, False), (True, False), (False, True), (True, True))}  # passes -> (left-right, up-down)
 DEFAULT_PASSES = 4
@@ -114,9 +118,11 @@ class HairFilter:
         return outputs, padded
 
 
-def load_filter(path=None, threads: int = 0) -> HairFilter:
-    """An onnxruntime session for the model at `path` (the shipped Base model by default)."""
-    path = Path(path) if path else SHIPPED_MODEL
+def load_filter(path=None, threads: int = 0, network: str = "base") -> HairFilter:
+    """An onnxruntime session for the model at `path`, or else for the shipped `network` (base or large)."""
+    if not path and network not in SHIPPED_MODELS:
+        raise HairFilterError(f"unknown hair filter network {network!r}; choose one of {', '.join(SHIPPED_MODELS)}")
+    path = Path(path) if path else SHIPPED_MODELS[network]
     if not path.is_file():
         raise HairFilterError(f"hair filter model not found: {path}")
     try:

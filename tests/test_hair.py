@@ -11,7 +11,8 @@ import pytest
 
 from shaders import hair_pairs
 from shaders import hair_raster as hr
-from shaders.hair_filter import SHIPPED_MODEL, HairFilterError, load_filter, mean_as_composited, mirror_features, unmirror
+from shaders.hair_filter import (SHIPPED_MODEL, SHIPPED_MODELS, HairFilterError, load_filter, mean_as_composited,
+                                 mirror_features, unmirror)
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -308,14 +309,22 @@ def test_bad_model_files_give_one_clear_message(tmp_path):
     corrupt.write_bytes(SHIPPED_MODEL.read_bytes()[:2000])
     with pytest.raises(HairFilterError, match="not a readable ONNX file"):
         load_filter(corrupt)
+    with pytest.raises(HairFilterError, match="unknown hair filter network 'huge'; choose one of base, large"):
+        load_filter(network="huge")
 
 
-def test_the_shipped_model_is_a_base_filter_with_its_reproduction_recipe():
-    hair_filter = load_filter()
-    assert (hair_filter.config, hair_filter.samples, hair_filter.stride) == ("base+blend", 4, 8)
-    recipe = json.loads(SHIPPED_MODEL.with_suffix(".json").read_text())
-    assert recipe["train_pairs"] >= 100 and recipe["step"] > 0
-    assert "command" in recipe
+@pytest.mark.parametrize("network", sorted(SHIPPED_MODELS))
+def test_the_shipped_networks_are_4_spp_filters_with_their_reproduction_recipes(network):
+    hair_filter = load_filter(network=network)
+    assert (hair_filter.config, hair_filter.samples, hair_filter.stride) == (f"{network}+blend", 4, 8)
+    assert hair_filter.path == SHIPPED_MODELS[network]
+    recipe = json.loads(SHIPPED_MODELS[network].with_suffix(".json").read_text())
+    assert recipe["train_pairs"] >= 100
+    assert recipe["step"] == {"base": 20982, "large": 21000}[network]  # base: its 1800-s budget's steps
+    makefile = (REPO / "Makefile").read_text()
+    assert f"--config {network}+blend " in recipe["command"]
+    assert f"--config {network}+blend --flip-weight 0.3 --steps 21000 --out models/hair_{network}.onnx" in makefile
+    assert load_filter().path == SHIPPED_MODEL == SHIPPED_MODELS["base"]  # the default
 
 
 def test_mirrored_input_keeps_tangents_along_the_strands_in_the_image():
@@ -429,7 +438,12 @@ def test_filter_hair_operator_on_the_hair_scene(tmp_path):
         assert pixels.shape == (75, 100, 3) and np.isfinite(pixels).all()
         summary = json.loads((tmp_path / "hair" / "hair_filter.json").read_text())
         assert summary["key_light"].startswith("Key") and any("stride" in w for w in summary["warnings"])
-        assert summary["filter_passes"] == 2
+        assert summary["filter_passes"] == 2 and summary["config"] == "base+blend"
+        with active_scene(scene):
+            scene.sg_lightfield.hair_network = "LARGE"
+            assert bpy.ops.sg_lightfield.filter_hair() == {"FINISHED"}
+        summary = json.loads((tmp_path / "hair" / "hair_filter.json").read_text())
+        assert summary["config"] == "large+blend" and summary["model"].endswith("hair_large.onnx")
         empty = build_demo_scene("demo:spheres")
         with active_scene(empty):
             empty.sg_lightfield.hair_output_dir = str(tmp_path / "none")
@@ -455,6 +469,8 @@ def test_filter_hair_command_line_and_its_bad_input(tmp_path):
     (tmp_path / "bad.onnx").write_text("not a model")
     bad = run("--scene", "demo:hair", "--out", str(tmp_path / "x"), "--model", str(tmp_path / "bad.onnx"))
     assert bad.returncode == 1 and "not a readable ONNX file" in bad.stderr
+    both = run("--scene", "demo:hair", "--out", str(tmp_path / "x"), "--network", "large", "--model", "m.onnx")
+    assert both.returncode == 2 and "not allowed with argument" in both.stderr
     assert not (tmp_path / "x" / "filtered.exr").exists()
 
 
