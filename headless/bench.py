@@ -479,15 +479,15 @@ def _mean_value(by_key: dict) -> float:
 
 
 def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 16, samples: int = 32,
-                   reference_samples: int = 128) -> list[dict]:
+                   reference_samples: int = 128, texel_density: float = 4.0) -> list[dict]:
     """The free SGs against the production lightmappers' encodings at equal bytes per texel, on `spheres`: CNN with
     5 SGs (70 B) against fixed SG12 by NNLS (72 B), and CNN with 4 SGs (56 B) against L2 SH (54 B, shaded by the
     SH variant of the node group); each baked, applied and evaluated against Cycles (RMSE and FLIP on glossy
     pixels), plus the numpy error of the reflected radiance per material (glossy_error of its texels at its
     roughness, against the rendered light fields; the floor is an irradiance lightmap and has no SGs), and for the
     SG encoders that error split into the SGs' fit and the node group's closed form (encoding_error_split). The
-    light fields are Draft's (R = 16, 32 spp) unless given; docs/design-additions.md §18 has the ratios at R = 32
-    and at 128 spp, §19 the split."""
+    light fields are Draft's (R = 16, 32 spp, 4 texels per metre) unless given; docs/design-additions.md §18 has the
+    ratios at R = 32 and at 128 spp, §19 the split, §22 the ratio against texel density."""
     import numpy as np
 
     from blender_addon.apply import apply_stage, remove_bake
@@ -517,8 +517,8 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 16,
         scene = build_demo_scene("spheres")
         plan = build_plan(scene, BakeSettings.from_preset("draft", lightfield_resolution=resolution, samples=samples,
                                                           sg_count=sg_count, uniform_sg_count=True,
-                                                          training_budget_s=budget_s))
-        out = out_root / f"encoders_{encoder}{sg_count}"
+                                                          training_budget_s=budget_s, texel_density=texel_density))
+        out = out_root / f"encoders_{encoder}{sg_count}_density{texel_density:g}"
         start = time.perf_counter()
         capture(scene, plan, out)
         render_stage(scene, plan, out)
@@ -547,7 +547,7 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 16,
                 each = evenly(np.flatnonzero(roughness == value), ENCODING_SPLIT_TEXELS)
                 split[f"{value:g}"] = {k: round(v, 4) for k, v in encoding_error_split(
                     images[each], normals[each], axis[each], sharpness[each], amplitude[each], value).items()}
-        rows.append({"encoder": name, "bytes_per_texel": trained.bytes_per_texel,
+        rows.append({"encoder": name, "bytes_per_texel": trained.bytes_per_texel, "texel_density": texel_density,
                      "glossy_rmse": round(_over_glossy(classes, "rmse"), 4),
                      "glossy_flip": round(_over_glossy(classes, "flip"), 4),
                      "flip": round(errors["flip"], 4),
@@ -558,7 +558,8 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 16,
                                            for k, v in classes.items()},
                      "rmse_by_roughness": {k: None if v["rmse"] is None else round(v["rmse"], 4)
                                            for k, v in classes.items()}})
-    print(f"\nencoders at equal bytes (spheres, R = {resolution}, {samples} spp; CNN {budget_s:g} s; "
+    print(f"\nencoders at equal bytes (spheres, {texel_density:g} texels/m, R = {resolution}, {samples} spp; "
+          f"CNN {budget_s:g} s; "
           f"{reference_samples}-spp references); reflected radiance error against the rendered light fields, "
           "per sphere's roughness")
     print(f"  {'encoder':<24} {'bytes':>5} {'glossy RMSE':>11} {'glossy FLIP':>11} {'FLIP':>7}  reflected error")
@@ -716,6 +717,9 @@ def main(argv=None) -> int:
     p.add_argument("--scenes", help="presets section: comma-separated demo scenes (default spheres,room,courtyard)")
     p.add_argument("--presets", help="presets section: comma-separated presets (default all); rows of other "
                    "scenes and presets already in OUT/bench.json are kept")
+    p.add_argument("--encoder-density", type=float, default=4.0, metavar="TEXELS_PER_METRE",
+                   help="encoders section: texel density of its four bakes (default 4, Draft's; the CNN's budget grows "
+                   "with the texel count)")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
                    help="render and presets sections: Cycles (and the training) on the CPU or on OptiX GPUs and CUDA "
                    "(the render section's numbers are kept apart in bench.json as render_cuda)")
@@ -724,6 +728,8 @@ def main(argv=None) -> int:
     unknown = set(sections) - set(SECTIONS)
     if unknown:
         p.error(f"unknown section(s) {sorted(unknown)}; choose from {', '.join(SECTIONS)}")
+    if not 0.5 <= ns.encoder_density <= 64:
+        p.error("--encoder-density takes 0.5 to 64 texels per metre")
     ns.out.mkdir(parents=True, exist_ok=True)
     scenes = ["room"] if ns.quick else ["room", "spheres", "courtyard"]
     presets = ["draft", "preview"] if ns.quick else list(PRESETS)
@@ -740,7 +746,9 @@ def main(argv=None) -> int:
         results["sgcount"] = bench_sg_count(ns.out, ("spheres",) if ns.quick else ("spheres", "room"),
                                             budget_s=30.0 if ns.quick else 60.0)
     if "encoders" in sections:
-        results["encoders"] = bench_encoders(ns.out, budget_s=30.0 if ns.quick else 60.0)
+        texel_share = (ns.encoder_density / 4.0) ** 2  # the CNN gets the same time per texel at any density
+        results["encoders"] = bench_encoders(ns.out, budget_s=(30.0 if ns.quick else 60.0) * texel_share,
+                                             texel_density=ns.encoder_density)
     if "knobs" in sections:
         results["knobs"] = bench_knobs(ns.out, "spheres", {"lightfield_resolution": (32,), "samples": (64,)}
                                        if ns.quick else None)
