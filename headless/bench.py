@@ -717,7 +717,8 @@ def main(argv=None) -> int:
     p.add_argument("--scenes", help="presets section: comma-separated demo scenes (default spheres,room,courtyard)")
     p.add_argument("--presets", help="presets section: comma-separated presets (default all); rows of other "
                    "scenes and presets already in OUT/bench.json are kept")
-    p.add_argument("--encoder-density", type=float, default=4.0, metavar="TEXELS_PER_METRE",
+    p.add_argument("--encoder-density", type=float, default=PRESETS["draft"]["texel_density"],
+                   metavar="TEXELS_PER_METRE",
                    help="encoders section: texel density of its four bakes (default 4, Draft's; the CNN's budget grows "
                    "with the texel count)")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
@@ -746,7 +747,7 @@ def main(argv=None) -> int:
         results["sgcount"] = bench_sg_count(ns.out, ("spheres",) if ns.quick else ("spheres", "room"),
                                             budget_s=30.0 if ns.quick else 60.0)
     if "encoders" in sections:
-        texel_share = (ns.encoder_density / 4.0) ** 2  # the CNN gets the same time per texel at any density
+        texel_share = (ns.encoder_density / PRESETS["draft"]["texel_density"]) ** 2  # same CNN time per texel
         results["encoders"] = bench_encoders(ns.out, budget_s=(30.0 if ns.quick else 60.0) * texel_share,
                                              texel_density=ns.encoder_density)
     if "knobs" in sections:

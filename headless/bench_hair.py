@@ -30,10 +30,9 @@ if __package__ in (None, ""):
 
 from shaders import hair_pairs, hair_raster  # noqa: E402
 from shaders.bake_plan import write_json_atomic  # noqa: E402
-from shaders.hair_filter import SHIPPED_MODELS, HairFilterError, load_filter  # noqa: E402
+from shaders.hair_filter import MODELS_DIR, SHIPPED_MODELS, HairFilterError, load_filter  # noqa: E402
 from shaders.image_metrics import flip, psnr, tonemap  # noqa: E402
 
-MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
 HAIR_COLOR, LIGHT, BACKGROUND = np.array(hair_raster.EVALUATION_LOOK[0]), *hair_raster.EVALUATION_LOOK[1:]
 
 
@@ -213,7 +212,7 @@ def paired_differences(scores: dict, ours: str, others) -> dict:
 
 
 def shipped_models() -> dict:
-    names = {4: "hair_base.onnx", 2: "hair_base@2spp.onnx", 1: "hair_base@1spp.onnx"}
+    names = {4: SHIPPED_MODELS["base"].name, 2: "hair_base@2spp.onnx", 1: "hair_base@1spp.onnx"}
     return {spp: MODELS_DIR / name for spp, name in names.items() if (MODELS_DIR / name).is_file()}
 
 
