@@ -113,11 +113,12 @@ ROUGHNESS_CLASSES = (("roughness < 0.3", 0.0, 0.3), ("0.3 <= roughness < 0.6", 0
                      ("roughness >= 0.6", 0.6, float("inf")))
 
 
-def roughness_image(scene, camera, path) -> np.ndarray:
-    """(H, W) roughness of the original material seen through each pixel (NaN where the world shows): a quick
-    render with every slot swapped to an emission of that roughness, undone before returning."""
+def surface_images(scene, camera, path) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """What each pixel sees, by a quick render with every slot swapped to an emission, undone before returning:
+    (H, W) roughness of the original material (NaN where the world shows), (H, W) index into the returned material
+    names (-1 where the world shows or a pixel mixes materials), and those names."""
     record = json.loads(scene.get(BAKE_RECORD_KEY, "{}"))
-    emissions, undo, created = {}, [], []
+    emissions, names, undo, created = {}, [], [], []
     try:
         for obj in scene.objects:
             for index, slot in enumerate(getattr(obj, "material_slots", [])):
@@ -130,7 +131,8 @@ def roughness_image(scene, camera, path) -> np.ndarray:
                     nodes = material.node_tree.nodes
                     emission = nodes.new("ShaderNodeEmission")
                     value = float(principled_surface(original)["roughness"]) if original is not None else 1.0
-                    emission.inputs["Color"].default_value = (value, value, value, 1.0)
+                    names.append(key or "(no material)")
+                    emission.inputs["Color"].default_value = (value, float(len(names)), 0.0, 1.0)
                     material.node_tree.links.new(emission.outputs[0], nodes["Material Output"].inputs["Surface"])
                     emissions[key] = material
                 undo.append((slot, slot.material))
@@ -141,7 +143,7 @@ def roughness_image(scene, camera, path) -> np.ndarray:
             scene.camera = camera
             scene.cycles.samples = 4
             render_still(scene, path)
-            pixels, _, _ = read_exr(path, channels=["R", "A"])
+            pixels, _, _ = read_exr(path, channels=["R", "G", "A"])
         finally:
             scene.render.film_transparent = transparent
     finally:
@@ -149,21 +151,38 @@ def roughness_image(scene, camera, path) -> np.ndarray:
             slot.material = material
         for material in created:
             bpy.data.materials.remove(material)
-    value, alpha = pixels[..., 0].astype(np.float64), pixels[..., 1].astype(np.float64)
-    return np.where(alpha > 0.5, value / np.maximum(alpha, 1e-6), np.nan)
+    value, number, alpha = (pixels[..., c].astype(np.float64) for c in range(3))
+    covered = alpha > 0.5
+    roughness = np.where(covered, value / np.maximum(alpha, 1e-6), np.nan)
+    number = number / np.maximum(alpha, 1e-6)
+    # the pixel filter blends neighbours' emissions at edges: a pixel counts for a material only when it is whole
+    whole = (alpha > 0.999) & (np.abs(number - np.round(number)) < 1e-3)
+    return roughness, np.where(whole, np.round(number) - 1, -1).astype(np.int64), names
+
+
+def _masked_errors(flip_maps, masks, squared_error_maps=None) -> dict:
+    values = np.concatenate([f[m] for f, m in zip(flip_maps, masks)])
+    out = {"flip": float(values.mean()) if values.size else None, "pixels": int(values.size)}
+    if squared_error_maps is not None:
+        squared = np.concatenate([e[m] for e, m in zip(squared_error_maps, masks)])
+        out["rmse"] = float(np.sqrt(squared.mean())) if squared.size else None
+    return out
 
 
 def flip_by_roughness(flip_maps, roughness_maps, squared_error_maps=None) -> dict:
     """Mean FLIP (and RMSE of the tone-mapped images, given per-pixel squared errors) per roughness class over all
     views' pixels of that class."""
+    return {name: _masked_errors(flip_maps, [(r >= low) & (r < high) for r in roughness_maps], squared_error_maps)
+            for name, low, high in ROUGHNESS_CLASSES}
+
+
+def flip_by_material(flip_maps, material_maps, names, squared_error_maps=None) -> dict:
+    """The same per material (original names) seen whole in some view's pixels."""
     out = {}
-    for name, low, high in ROUGHNESS_CLASSES:
-        masks = [(r >= low) & (r < high) for r in roughness_maps]
-        values = np.concatenate([f[m] for f, m in zip(flip_maps, masks)])
-        out[name] = {"flip": float(values.mean()) if values.size else None, "pixels": int(values.size)}
-        if squared_error_maps is not None:
-            squared = np.concatenate([e[m] for e, m in zip(squared_error_maps, masks)])
-            out[name]["rmse"] = float(np.sqrt(squared.mean())) if squared.size else None
+    for index, name in enumerate(names):
+        entry = _masked_errors(flip_maps, [m == index for m in material_maps], squared_error_maps)
+        if entry["pixels"]:
+            out[name] = entry
     return out
 
 
@@ -240,7 +259,7 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144
                  adaptive=cycles.use_adaptive_sampling, camera=scene.camera)
     cameras = _view_cameras(scene, plan, views)
     results, references, tests, eevee = [], [], [], {}
-    flip_maps, roughness_maps, squared_maps, noise_flip_maps = [], [], [], []
+    flip_maps, roughness_maps, material_maps, squared_maps, noise_flip_maps = [], [], [], [], []
     try:
         render.engine = "CYCLES"
         render.resolution_x, render.resolution_y, render.resolution_percentage = *resolution, 100
@@ -264,7 +283,9 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144
                 mean_flip, flip_map = flip(ref_ldr, ours_ldr)
                 flip_maps.append(flip_map)
                 squared_maps.append(((ref_ldr - ours_ldr) ** 2).mean(axis=-1))
-                roughness_maps.append(roughness_image(scene, camera, Path(tmp) / "roughness.exr"))
+                roughness, materials, material_names = surface_images(scene, camera, Path(tmp) / "surface.exr")
+                roughness_maps.append(roughness)
+                material_maps.append(materials)
                 noise = rmse(tonemap(half_a), tonemap(half_b)) / 2
                 # FLIP between the two half-sample references: the floor no bake can get under at this sample count
                 noise_flip_maps.append(flip(tonemap(half_a), tonemap(half_b))[1])
@@ -292,6 +313,9 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144
     errors["flip_by_roughness"] = flip_by_roughness(flip_maps, roughness_maps, squared_maps)
     errors["reference_noise_flip"] = float(np.mean([m.mean() for m in noise_flip_maps]))
     errors["reference_noise_flip_by_roughness"] = flip_by_roughness(noise_flip_maps, roughness_maps)
+    errors["flip_by_material"] = flip_by_material(flip_maps, material_maps, material_names, squared_maps)
+    for name, entry in flip_by_material(noise_flip_maps, material_maps, material_names).items():
+        errors["flip_by_material"][name]["reference_noise_flip"] = entry["flip"]
     errors["eevee"] = eevee
     errors["reference_samples"], errors["test_samples"] = reference_samples, test_samples
     seconds = time.perf_counter() - start

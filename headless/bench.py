@@ -411,6 +411,7 @@ def bench_presets(out_root: Path, scenes, presets, earlier_rows=(), device: str 
                          "flip": round(errors["flip"], 4), "psnr_db": round(errors["psnr"], 2),
                          "flip_by_roughness": {k: None if v["flip"] is None else round(v["flip"], 4)
                                                for k, v in errors["flip_by_roughness"].items()},
+                         "flip_by_material": {k: round(v["flip"], 4) for k, v in errors["flip_by_material"].items()},
                          "eevee_flip": None if "flip" not in eevee else round(eevee["flip"], 4),
                          "reference_noise_rmse": round(errors["reference_noise_rmse"], 4),
                          "reference_noise_flip_by_roughness": {
@@ -420,7 +421,7 @@ def bench_presets(out_root: Path, scenes, presets, earlier_rows=(), device: str 
             shares = ", ".join(f"{k} {100 * v:.0f}%" for k, v in row["stage_share"].items())
             print(f"preset {preset:<10} {name:<10} bake {row['bake_s']:7.1f} s ({shares}); FLIP {row['flip']:.4f} "
                   f"(EEVEE {row['eevee_flip']}), by roughness {row['flip_by_roughness']}, reference noise floor "
-                  f"{row['reference_noise_flip_by_roughness']}")
+                  f"{row['reference_noise_flip_by_roughness']}, by material {row['flip_by_material']}")
     rows.sort(key=lambda r: (r["scene"], _device_of(r), list(PRESETS).index(r["preset"])))
     return rows
 
@@ -557,7 +558,8 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 16,
                      "flip_by_roughness": {k: None if v["flip"] is None else round(v["flip"], 4)
                                            for k, v in classes.items()},
                      "rmse_by_roughness": {k: None if v["rmse"] is None else round(v["rmse"], 4)
-                                           for k, v in classes.items()}})
+                                           for k, v in classes.items()},
+                     "flip_by_material": {k: round(v["flip"], 4) for k, v in errors["flip_by_material"].items()}})
     print(f"\nencoders at equal bytes (spheres, {texel_density:g} texels/m, R = {resolution}, {samples} spp; "
           f"CNN {budget_s:g} s; "
           f"{reference_samples}-spp references); reflected radiance error against the rendered light fields, "

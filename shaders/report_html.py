@@ -71,6 +71,10 @@ def write_report_html(out_dir) -> Path:
              if entry.get("pixels")]
     rows += [(f"FLIP of the reference's own noise where {name} (the floor)", entry["flip"])
              for name, entry in errors.get("reference_noise_flip_by_roughness", {}).items() if entry.get("pixels")]
+    rows += [(f"FLIP on material '{name}'", f"{entry['flip']:.4f} (the reference's noise there: "
+                                              f"{entry.get('reference_noise_flip', float('nan')):.4f}; "
+                                              f"{entry['pixels']} pixels)")
+             for name, entry in errors.get("flip_by_material", {}).items()]
     eevee = errors.get("eevee") or {}
     if "error" in eevee:
         rows.append(("EEVEE", f"not rendered: {eevee['error']}"))
