@@ -31,6 +31,7 @@ def settings_from_panel(panel) -> BakeSettings:
         return BakeSettings.from_preset(panel.preset.lower(), device=device, rough_materials=rough_materials)
     return BakeSettings.from_preset("draft", texel_density=panel.texel_density, rough_materials=rough_materials,
                                     lightfield_resolution=panel.lightfield_resolution, samples=panel.samples,
+                                    lightmap_samples=panel.lightmap_samples,
                                     sg_count=16 if panel.sg_count_auto else panel.sg_count,
                                     uniform_sg_count=not panel.sg_count_auto,
                                     training_budget_s=panel.training_budget_s,

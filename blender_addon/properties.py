@@ -32,6 +32,9 @@ class SGLightfieldSettings(bpy.types.PropertyGroup):
         default=16, min=8, max=128)
     samples: IntProperty(name="Samples", description="Cycles samples per light-field pixel",
                          default=16, min=1, max=65536)
+    lightmap_samples: IntProperty(name="Lightmap Samples",
+                                  description="Cycles samples per light-field pixel of objects that get only an "
+                                  "irradiance lightmap (0: the same as Samples)", default=0, min=0, max=65536)
     sg_count_auto: BoolProperty(name="Automatic SG Count",
                                 description="Give each glossy material the fewest SGs its roughness needs "
                                 "(a measured rule, at most 16)", default=True)

@@ -44,7 +44,7 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.exr_io import read_exr, write_exr
     from ..shaders.lightfield_tiles import (DEFAULT_TILE_MEGAPIXELS, TileIndex, blocks_to_images, images_to_blocks,
                                             parse_share, plan_tiles, preview_mosaic, read_preview_images,
-                                            tile_is_finished, write_index)
+                                            tile_is_finished, tile_samples, write_index)
     from ..shaders.texel_maps import adjacent_texel_pairs, channels, read_texel_maps, texels_of_objects
     from .capture import scene_bvh
     from .scene_analysis import active_scene, remove_datablocks
@@ -57,7 +57,7 @@ except ImportError:  # bpy as a module with the repository on sys.path
     from shaders.exr_io import read_exr, write_exr
     from shaders.lightfield_tiles import (DEFAULT_TILE_MEGAPIXELS, TileIndex, blocks_to_images, images_to_blocks,
                                           parse_share, plan_tiles, preview_mosaic, read_preview_images,
-                                          tile_is_finished, write_index)
+                                          tile_is_finished, tile_samples, write_index)
     from shaders.texel_maps import adjacent_texel_pairs, channels, read_texel_maps, texels_of_objects
 
 CAMERA_SHADER = Path(__file__).resolve().parent.parent / "shaders" / "lightfield_camera.osl"
@@ -341,8 +341,9 @@ class _RenderScene:
         self.scene.camera = camera
         return camera
 
-    def configure(self, kind: str):
-        """Scene state for one pass: which objects, world visibility, material override, samples."""
+    def configure(self, kind: str, samples: int | None = None):
+        """Scene state for one pass: which objects, world visibility, material override, samples (`samples`, else
+        the pass's)."""
         scene, settings = self.scene, self.plan.settings
         environment_pass = kind in ("env_radiance", "env_occluded")
         linked = set(scene.collection.objects)
@@ -361,7 +362,8 @@ class _RenderScene:
             scene.cycles.max_bounces = 0
         else:
             scene.cycles.max_bounces = self.source.cycles.max_bounces
-        scene.cycles.samples = ENV_RADIANCE_SAMPLES if kind == "env_radiance" else pass_samples(kind, settings.samples)
+        scene.cycles.samples = (ENV_RADIANCE_SAMPLES if kind == "env_radiance"
+                                else samples or pass_samples(kind, settings.samples))
 
     def render(self, positions, normals, offsets, flags, columns, rows, resolution, name) -> np.ndarray:
         """Render `columns` x `rows` blocks; inputs are (count, 3) arrays; returns (H, W, 3) float32."""
@@ -440,6 +442,23 @@ def _mono(images):
     return (images @ LUMINANCE)[..., None]
 
 
+def lightfield_tiles(atlas, texel_info, texels, plan, resolution, max_megapixels):
+    """The texels in render order and the light-field tiles: the texels of objects with SGs first, then, where
+    their samples differ, those of objects with lightmaps only in tiles of their own (`lightmap_0000.exr`, ...)
+    that carry the lightmap samples."""
+    settings = plan.settings
+    lightmap_only = ~texels_of_objects(atlas, texel_info, texels, plan.sg_objects)
+    if settings.lightmap_pass_samples == settings.samples or not lightmap_only.any():
+        return texels, plan_tiles(texels, resolution, max_megapixels=max_megapixels)
+    ordered = np.concatenate([texels[~lightmap_only], texels[lightmap_only]])
+    with_sgs = plan_tiles(texels[~lightmap_only], resolution, max_megapixels=max_megapixels)
+    lightmaps = plan_tiles(texels[lightmap_only], resolution, max_megapixels=max_megapixels, prefix="lightmap")
+    for tile in lightmaps:
+        tile.index += len(with_sgs)
+        tile.samples = settings.lightmap_pass_samples
+    return ordered, with_sgs + lightmaps
+
+
 def render_stage(scene, plan, out_dir, *, progress=_noop_progress, should_cancel=lambda: False,
                  **options) -> RenderResult:
     """Render every pass the plan needs into `out_dir`; finished tiles are kept and skipped."""
@@ -457,7 +476,8 @@ def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: i
     settings = plan.settings
     resolution = settings.lightfield_resolution
     result = RenderResult()
-    texels = valid_texels(atlas)
+    texels, lightfield_plan = lightfield_tiles(atlas, texel_info, valid_texels(atlas), plan, resolution,
+                                               max_tile_megapixels)
     result.texels = len(texels)
     jobs = [("lightfield", texels, _texel_inputs(atlas, texels), 3)]
     if midpoints > 0 and plan.sg_objects:
@@ -469,8 +489,9 @@ def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: i
     work = []  # (kind, kind_dir, index, tile, inputs)
     for kind, ids, inputs, channel_count in jobs:
         kind_dir = out_dir / kind
-        tiles = plan_tiles(ids, resolution, max_megapixels=max_tile_megapixels,
-                           inputs=np.concatenate(inputs[:2], axis=1) if kind == "midpoints" else None)
+        tiles = lightfield_plan if kind == "lightfield" else plan_tiles(
+            ids, resolution, max_megapixels=max_tile_megapixels,
+            inputs=np.concatenate(inputs[:2], axis=1) if kind == "midpoints" else None)
         index = TileIndex(kind, plan_hash, resolution, pass_samples(kind, settings.samples), channel_count, tiles)
         write_index(kind_dir, index)
         mine = parse_share(share, len(tiles))
@@ -487,8 +508,8 @@ def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: i
             if tile.index in mine and tile not in done:
                 work.append((kind, kind_dir, index, tile, tuple(a[offset:offset + count] for a in inputs)))
             offset += count
-    total_pixels = sum(len(t.texels) for _, _, _, t, _ in work) or 1
-    finished_pixels, render_seconds, rays = 0, 0.0, 0
+    total_work = sum(len(t.texels) * tile_samples(index, t) for _, _, index, t, _ in work) or 1  # pixel samples
+    finished_work, render_seconds, rays = 0, 0.0, 0
     if not work:
         yield 1.0, "all tiles already rendered"
     else:
@@ -529,22 +550,22 @@ def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: i
                                               tile.columns, tile.rows)
                     result.env_post_seconds += time.perf_counter() - post
                 else:
-                    renderer.configure(kind)
+                    renderer.configure(kind, tile_samples(index, tile))
                     pixels = renderer.render(positions, normals, offsets, flags, tile.columns, tile.rows,
                                              resolution, f"{kind}_{tile.index}")
                     seconds = time.perf_counter() - tick
                     render_seconds += seconds
-                    rays += len(positions) * resolution * resolution * index.samples // 2
+                    rays += len(positions) * resolution * resolution * tile_samples(index, tile) // 2
                 if not np.all(np.isfinite(pixels)):
                     result.warnings.append(f"{kind} {tile.file}: non-finite pixels set to 0")
                     pixels = np.nan_to_num(pixels, nan=0.0, posinf=0.0, neginf=0.0)
                 write_exr(kind_dir / tile.file, pixels, precision="half",
                           channels=["R", "G", "B"][:index.channels] if index.channels == 3 else ["Y"],
                           metadata={"plan_hash": plan_hash, "tile_hash": tile.hash, "resolution": resolution,
-                                    "samples": index.samples, "kind": kind})
+                                    "samples": tile_samples(index, tile), "kind": kind})
                 result.tiles_rendered[kind] += 1
-                finished_pixels += len(tile.texels)
-                yield finished_pixels / total_pixels, f"{kind} {tile.file} done ({len(tile.texels)} texels)"
+                finished_work += len(tile.texels) * tile_samples(index, tile)
+                yield finished_work / total_work, f"{kind} {tile.file} done ({len(tile.texels)} texels)"
     pictures = _save_previews(out_dir, plan_hash, [kind for kind, *_ in jobs])
     result.seconds = time.perf_counter() - start
     result.rays_per_second = rays / render_seconds if render_seconds > 0 else 0.0

@@ -14,6 +14,7 @@ def draw_sg_lightfield(layout, context):
     col.prop(settings, "texel_density")
     col.prop(settings, "lightfield_resolution")
     col.prop(settings, "samples")
+    col.prop(settings, "lightmap_samples")
     col.prop(settings, "sg_count_auto")
     sub = col.column()
     sub.enabled = not settings.sg_count_auto

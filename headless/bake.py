@@ -40,10 +40,13 @@ def parse_args(args: list[str]) -> argparse.Namespace:
     p.add_argument("--texel-density", type=float)
     p.add_argument("--lightfield-resolution", type=int)
     p.add_argument("--samples", type=int)
+    p.add_argument("--lightmap-samples", type=int, help="samples for the light fields of objects with only irradiance "
+                   "lightmaps (0: --samples; Production: 64)")
     p.add_argument("--sg-count", type=int, help="the most SGs a glossy material gets (0 = 16); each gets the "
                    "fewest its roughness needs, up to this")
-    p.add_argument("--uniform-sg-count", action="store_true",
-                   help="give every glossy material --sg-count SGs, whatever its roughness")
+    p.add_argument("--uniform-sg-count", action=argparse.BooleanOptionalAction,
+                   help="give every glossy material --sg-count SGs, whatever its roughness (Production does; "
+                   "--no-uniform-sg-count: each the fewest its roughness needs)")
     p.add_argument("--training-budget", type=float, dest="training_budget_s")
     p.add_argument("--lobe-refit-steps", type=int, help="Adam steps refitting the SGs' axes, sharpness and "
                    "amplitudes through the glossy shading after training (0: off; Production: 150)")
@@ -231,7 +234,8 @@ def run(ns, reporter: Reporter) -> int:
 
     settings = BakeSettings.from_preset(
         ns.preset, texel_density=ns.texel_density, lightfield_resolution=ns.lightfield_resolution,
-        samples=ns.samples, sg_count=ns.sg_count, uniform_sg_count=ns.uniform_sg_count,
+        samples=ns.samples, lightmap_samples=ns.lightmap_samples, sg_count=ns.sg_count,
+        uniform_sg_count=ns.uniform_sg_count,
         training_budget_s=ns.training_budget_s, lobe_refit_steps=ns.lobe_refit_steps,
         rough_materials=ns.rough_materials, device=ns.device)
     out = ns.out.expanduser().resolve()

@@ -475,6 +475,10 @@ def _over_glossy(classes: dict, key: str = "flip") -> float:
     return sum(classes[k][key] * classes[k]["pixels"] for k in names) / total
 
 
+def _rounded(value, digits: int = 4):
+    return None if value is None else round(value, digits)
+
+
 def _mean_value(by_key: dict) -> float:
     return sum(by_key.values()) / max(len(by_key), 1)
 
@@ -592,7 +596,7 @@ ENCODING_SPLIT_TEXELS = 96  # texels per sphere the encoders section splits the 
 
 
 KNOB_SWEEP = {"texel_density": (2.0, 8.0), "lightfield_resolution": (8, 32), "samples": (4, 64), "sg_count": (4, 16),
-              "training_budget_s": (15.0, 240.0)}
+              "training_budget_s": (15.0, 240.0), "lightmap_samples": (4, 64)}
 
 
 def bench_knobs(out_root: Path, scene_name: str = "spheres", sweep=None) -> list[dict]:
@@ -623,11 +627,15 @@ def bench_knobs(out_root: Path, scene_name: str = "spheres", sweep=None) -> list
                      "stages_s": {k: round(v, 1) for k, v in job.timings.items()},
                      "flip": round(errors["flip"], 4),
                      "glossy_flip": round(_over_glossy(classes), 4),
+                     "lightmap_flip": _rounded(classes["roughness >= 0.6"]["flip"]),
+                     "lightmap_noise_flip": _rounded(
+                         errors["reference_noise_flip_by_roughness"]["roughness >= 0.6"]["flip"]),
                      "texels": report.get("texels"), "bytes_per_texel": report.get("bytes_per_texel"),
                      "reference_noise_rmse": round(errors["reference_noise_rmse"], 4)})
         r = rows[-1]
         print(f"knob {r['run']:<24} bake {r['bake_s']:7.1f} s {r['stages_s']}  FLIP {r['flip']:.4f}  glossy FLIP "
-              f"{r['glossy_flip']:.4f} (reference noise {r['glossy_noise_flip']:.4f})  ({r['texels']} texels, "
+              f"{r['glossy_flip']:.4f} (reference noise {r['glossy_noise_flip']:.4f})  rough (lightmap) FLIP "
+              f"{r['lightmap_flip']} (noise {r['lightmap_noise_flip']})  ({r['texels']} texels, "
               f"{r['bytes_per_texel']} B/texel)", flush=True)
     return rows
 

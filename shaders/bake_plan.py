@@ -33,13 +33,19 @@ ROUGH_MATERIALS = ("irradiance", "renderer")
 # R = 32 and density 16 for scenes with finer lighting than spheres; on this 2-core CPU it is a long job (spheres:
 # render ~40 min), on a GPU or a farm (--tile i/N) minutes.
 LOBE_REFIT_STEPS_PRODUCTION = 150  # Adam steps of training/glossy_lobe_fit.py (docs/design-additions.md)
+# Production gives every glossy material 16 SGs: on the Production spheres (same light fields) the per-material
+# rule's 8 at roughness 0.4 / 0.5 cost FLIP 0.086 / 0.049 against 0.067 / 0.042 with 16 (section 23).
+# Objects with only irradiance lightmaps need the light field's cosine-weighted mean, not its detail: Production
+# renders them at 64 spp (R = 32: 4x Preview's rays per texel), not 256 (docs/design-additions.md section 23).
+LIGHTMAP_SAMPLES_PRODUCTION = 64
 PRESETS = {
     "draft": dict(texel_density=4.0, lightfield_resolution=16, samples=16, sg_count=16, training_budget_s=30.0,
-                  lobe_refit_steps=0),
+                  lobe_refit_steps=0, lightmap_samples=0),
     "preview": dict(texel_density=8.0, lightfield_resolution=16, samples=64, sg_count=16, training_budget_s=120.0,
-                    lobe_refit_steps=0),
-    "production": dict(texel_density=16.0, lightfield_resolution=32, samples=256, sg_count=16,
-                       training_budget_s=600.0, lobe_refit_steps=LOBE_REFIT_STEPS_PRODUCTION),
+                    lobe_refit_steps=0, lightmap_samples=0),
+    "production": dict(texel_density=16.0, lightfield_resolution=32, samples=256, sg_count=16, uniform_sg_count=True,
+                       training_budget_s=600.0, lobe_refit_steps=LOBE_REFIT_STEPS_PRODUCTION,
+                       lightmap_samples=LIGHTMAP_SAMPLES_PRODUCTION),
 }
 
 # Camera paths per second of the atlas render on this machine class (2 cores), measured by `make bench` on
@@ -51,8 +57,8 @@ CYCLES_BYTES_PER_PIXEL = 64  # render buffers of one tile (combined pass, sample
 # Settings each stage's output depends on (cumulative: a stage also depends on the ones before it).
 STAGE_SETTINGS = {
     "capture": {"texel_density"},
-    "render": {"texel_density", "lightfield_resolution", "samples"},
-    "train": {"texel_density", "lightfield_resolution", "samples", "sg_count", "uniform_sg_count",
+    "render": {"texel_density", "lightfield_resolution", "samples", "lightmap_samples"},
+    "train": {"texel_density", "lightfield_resolution", "samples", "lightmap_samples", "sg_count", "uniform_sg_count",
               "training_budget_s", "lobe_refit_steps"},
 }
 STAGE_SETTINGS["apply"] = STAGE_SETTINGS["evaluate"] = STAGE_SETTINGS["train"]
@@ -72,12 +78,18 @@ class BakeSettings:
     texel_density: float = 4.0  # texels per metre
     lightfield_resolution: int = 16  # octahedral R
     samples: int = 16
+    lightmap_samples: int = 0  # samples for the texels of objects with only irradiance lightmaps (0: `samples`)
     sg_count: int = 8  # the most SGs a glossy material gets (0 = 16); each gets what its roughness needs, up to it
     uniform_sg_count: bool = False  # every glossy material gets sg_count SGs, whatever its roughness
     training_budget_s: float = 60.0
     lobe_refit_steps: int = 0  # Adam steps refitting SG axes, sharpness and amplitudes through the glossy (0: off)
     rough_materials: str = "irradiance"  # rough dielectrics: an irradiance lightmap, or the renderer's own lighting
     device: str = "cpu"
+
+    @property
+    def lightmap_pass_samples(self) -> int:
+        """Samples per light-field pixel of the texels whose objects get only irradiance lightmaps."""
+        return self.lightmap_samples or self.samples
 
     @classmethod
     def from_preset(cls, name: str, **overrides):
@@ -95,6 +107,8 @@ class BakeSettings:
             (8 <= self.lightfield_resolution <= 128,
              f"light-field resolution {self.lightfield_resolution} is outside 8..128"),
             (1 <= self.samples <= 65536, f"samples {self.samples} is outside 1..65536"),
+            (0 <= self.lightmap_samples <= 65536, f"lightmap samples {self.lightmap_samples} is outside 0 (= samples)"
+                                                   "..65536"),
             (0 <= self.sg_count <= 64, f"SG count {self.sg_count} is outside 0 (= 16)..64"),
             (1 <= self.training_budget_s <= 7 * 24 * 3600, f"training budget {self.training_budget_s} s is outside 1 s..7 days"),
             (0 <= self.lobe_refit_steps <= 100_000, f"lobe refit steps {self.lobe_refit_steps} is outside 0..100000"),
@@ -176,9 +190,16 @@ class BakePlan:
     def max_sg_count(self) -> int:
         return max((m.sg_count for o in self.baked_objects for m in o.materials if m.glossy), default=0)
 
+    @property
+    def lightmap_only_texels(self) -> int:
+        """Texels of baked objects without SGs: rendered at the settings' lightmap_pass_samples."""
+        with_sgs = set(self.sg_objects)
+        return sum(o.texels for o in self.baked_objects if o.name not in with_sgs)
+
     def render_estimate_s(self) -> float:
-        r = self.settings.lightfield_resolution
-        rays = self.texels * r * r * self.settings.samples / 2  # upper hemisphere only
+        r, settings, lightmap = self.settings.lightfield_resolution, self.settings, self.lightmap_only_texels
+        pixel_samples = (self.texels - lightmap) * settings.samples + lightmap * settings.lightmap_pass_samples
+        rays = r * r * pixel_samples / 2  # upper hemisphere only
         if self.environment.iwev:
             rays += self.texels * r * r / 2  # one primary ray per pixel for L_E * V
         return rays / ATLAS_RAYS_PER_SECOND_CPU
@@ -196,6 +217,12 @@ class BakePlan:
                          + f" ({rule})")
         if self.irradiance_only_materials:
             lines.append("irradiance lightmap only (rough, no SGs): " + ", ".join(self.irradiance_only_materials))
+        if self.lightmap_only_texels and self.settings.lightmap_pass_samples != self.settings.samples:
+            with_sgs = set(self.sg_objects)
+            names = [o.name for o in self.baked_objects if o.name not in with_sgs]
+            lines.append(f"light fields of objects with lightmaps only ({', '.join(names)}): "
+                         f"{self.settings.lightmap_pass_samples} samples per pixel (irradiance needs their mean), "
+                         f"the others {self.settings.samples}")
         lines.append(f"environment: {self.environment.reason}")
         if self.lamps or self.emissive_objects:
             lines.append(f"light sources: lamps {self.lamps or 'none'}, "

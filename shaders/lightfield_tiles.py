@@ -4,7 +4,8 @@ A tile is one Cycles render: a grid of `columns` x `rows` blocks of R x R pixels
 the top-left) holding the octahedral light field of the tile's k-th texel (pixel conventions of
 shaders/octahedral.py: block row 0 is v = -1). Files, per kind (``lightfield``, ``env_visibility``,
 ``env_radiance``, ``midpoints``):
-  KIND/index.json       resolution, samples, plan hash, and per tile its texels and file name
+  KIND/index.json       resolution, samples, plan hash, and per tile its texels, file name and, where they differ
+                        from the index's, its own samples (light fields of objects with lightmaps only)
   KIND/tile_0000.exr    half-float RGB, written atomically; metadata holds the plan and tile hashes
 A tile whose file exists with matching hashes is finished: resumed runs and farm machines skip it.
 """
@@ -37,6 +38,7 @@ class Tile:
     rows: int
     texels: list  # [[atlas_row, atlas_col], ...] in block order
     hash: str = ""
+    samples: int = 0  # samples per pixel of this tile; 0: the index's
 
     def __post_init__(self):
         if not self.hash:
@@ -135,7 +137,12 @@ def tile_is_finished(kind_dir: Path, index: TileIndex, tile: Tile) -> bool:
     except ExrError:  # missing, truncated or not an EXR: render it (again)
         return False
     return (meta.get("plan_hash") == index.plan_hash and meta.get("tile_hash") == tile.hash
-            and meta.get("resolution") == str(index.resolution) and meta.get("samples") == str(index.samples))
+            and meta.get("resolution") == str(index.resolution)
+            and meta.get("samples") == str(tile_samples(index, tile)))
+
+
+def tile_samples(index: TileIndex, tile: Tile) -> int:
+    return tile.samples or index.samples
 
 
 def read_images(kind_dir: Path, plan_hash: str | None = None):

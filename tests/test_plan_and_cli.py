@@ -138,7 +138,8 @@ def test_zero_area_and_loose_vertices_are_skipped_with_a_warning():
 @pytest.mark.parametrize("overrides, message", [
     (dict(texel_density=1e9), "texel density"), (dict(lightfield_resolution=4), "resolution"),
     (dict(samples=0), "samples"), (dict(sg_count=999), "SG count"), (dict(device="tpu"), "device"),
-    (dict(lobe_refit_steps=-1), "lobe refit steps"), (dict(rough_materials="ignore"), "rough materials")])
+    (dict(lobe_refit_steps=-1), "lobe refit steps"), (dict(rough_materials="ignore"), "rough materials"),
+    (dict(lightmap_samples=-4), "lightmap samples"), (dict(lightmap_samples=10**6), "lightmap samples")])
 def test_absurd_settings_are_rejected(overrides, message):
     with pytest.raises(BakeInputError, match=message):
         BakeSettings.from_preset("draft", **overrides)
@@ -163,6 +164,23 @@ def test_cli_plan_only_json_lines_parse(tmp_path):
     assert [e["event"] for e in events] == ["plan", "done"]
     plan = json.loads((tmp_path / "bake" / "plan.json").read_text())
     assert plan["hash"] == events[0]["hash"] and plan["texels"] > 0
+
+
+def test_cli_production_plan_gives_16_sgs_everywhere_and_the_floor_its_lightmap_samples(tmp_path):
+    """Production: 16 SGs on every glossy sphere (--no-uniform-sg-count brings back the per-material rule: 8 at
+    roughness 0.4 and 0.5) and the lightmap-only floor's light field at 64 spp beside the spheres' 256."""
+    lines = {}
+    for extra in ([], ["--no-uniform-sg-count", "--lightmap-samples", "0"]):
+        out = _bake("--scene", "demo:spheres", "--preset", "production", "--out", str(tmp_path / "bake"),
+                    "--plan-only", *extra)
+        assert out.returncode == 0, out.stderr
+        decisions = json.loads((tmp_path / "bake" / "plan.json").read_text())["decisions"]
+        lines[bool(extra)] = [line for line in decisions if line.startswith(("SGs per material", "light fields of"))]
+    assert lines[False] == ["SGs per material: Glossy (roughness 0.2) 16, Glossy (roughness 0.3) 16, Glossy (roughness "
+                            "0.4) 16, Glossy (roughness 0.5) 16 (every glossy material the same (uniform))",
+                            "light fields of objects with lightmaps only (Floor): 64 samples per pixel (irradiance "
+                            "needs their mean), the others 256"]
+    assert len(lines[True]) == 1 and "Glossy (roughness 0.4) 8, Glossy (roughness 0.5) 8" in lines[True][0]
 
 
 @pytest.mark.parametrize("args, message", [

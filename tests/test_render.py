@@ -11,9 +11,10 @@ from blender_addon.render import MIDPOINT_SAMPLES_FACTOR, optix_devices, render_
 from blender_addon.scene_analysis import build_plan, enable_nodes
 from shaders.bake_plan import BakeCancelled, BakeInputError, BakeSettings
 from shaders.env_visibility import above_horizon_fraction
+from shaders.exr_io import read_exr_metadata
 from shaders.lightfield_tiles import read_images, read_index
 from shaders.octahedral import direction_to_pixel, pixel_directions
-from shaders.texel_maps import channels, read_texel_maps
+from shaders.texel_maps import channels, read_texel_maps, texels_of_objects
 from tests.scene_helpers import cube, material, mesh_object, scene_with, uniform_world, uv_sphere
 
 pytestmark = pytest.mark.slow
@@ -331,3 +332,47 @@ def test_nan_and_negative_pixels_in_an_hdri_are_sanitised_with_a_warning(tmp_pat
         _, images = read_images(tmp_path / kind, plan.stage_hash("render"))
         assert np.all(np.isfinite(images)) and images.min() >= 0
     assert np.isnan(np.array(image.pixels[:]).reshape(8, 16, 4)[2, 3, 0])  # the user's image is untouched
+
+
+def test_objects_with_lightmaps_only_render_with_the_lightmap_samples_in_tiles_of_their_own(tmp_path):
+    """Production renders a lightmap-only floor at 64 spp and the glossy ball at 256: same light, a quarter of the
+    rays. Here 2 and 8 spp; the floor's mean radiance agrees with an 8-spp render of it, and the ball's tiles are
+    the same texels at the same samples as without the split."""
+    ball = mesh_object("Ball", uv_sphere(0.5), material("glossy", 0.3))
+    floor = mesh_object("Floor", lambda bm: bmesh.ops.create_grid(bm, x_segments=1, y_segments=1, size=2.0),
+                        material("rough", 0.8))
+    floor.location = (0, 0, -0.6)
+    lamp = bpy.data.objects.new("Lamp", bpy.data.lights.new("Lamp", "POINT"))
+    lamp.location, lamp.data.energy = (1, 1, 2), 200.0
+    scene = scene_with(ball, floor, lamp)
+    uniform_world(scene, (0.2, 0.2, 0.2))
+    floors = {}
+    for lightmap_samples in (2, 0):
+        settings = BakeSettings.from_preset("draft", lightfield_resolution=8, samples=8, texel_density=6.0,
+                                            lightmap_samples=lightmap_samples)
+        plan = build_plan(scene, settings)
+        out = tmp_path / f"lightmap_{lightmap_samples}"
+        capture(scene, plan, out)
+        render_stage(scene, plan, out, max_tile_megapixels=0.004)
+        index = read_index(out / "lightfield", plan.stage_hash("render"))
+        atlas, info = read_texel_maps(out)
+        texels, images = read_images(out / "lightfield", plan.stage_hash("render"))
+        on_floor = ~texels_of_objects(atlas, info, texels, ["Ball"])
+        floors[lightmap_samples] = images[on_floor].mean(axis=(0, 1, 2))
+        lightmap_tiles = [t for t in index.tiles if t.file.startswith("lightmap_")]
+        if lightmap_samples:
+            assert lightmap_tiles and all(t.samples == 2 for t in lightmap_tiles), index.tiles
+            assert {t.index for t in index.tiles} == set(range(len(index.tiles)))  # farm shares count them all
+            for tile in index.tiles:  # each tile says on disk what it was rendered with
+                samples = read_exr_metadata(out / "lightfield" / tile.file)["samples"]
+                assert samples == ("2" if tile in lightmap_tiles else "8")
+                ball_texels = texels_of_objects(atlas, info, np.asarray(tile.texels), ["Ball"])
+                assert ball_texels.all() if tile not in lightmap_tiles else not ball_texels.any()
+            assert any("(Floor): 2 samples per pixel" in line for line in plan.decisions())
+            split_hash, split_estimate = plan.stage_hash("render"), plan.render_estimate_s()
+        else:
+            assert not lightmap_tiles and all(t.samples == 0 for t in index.tiles)
+            assert plan.stage_hash("render") != split_hash  # changing the lightmap samples renders again
+            assert split_estimate < 0.6 * plan.render_estimate_s()
+    assert np.all(floors[2] > 0)
+    np.testing.assert_allclose(floors[2], floors[0], rtol=0.15)  # the same light, with more noise
