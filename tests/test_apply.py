@@ -272,8 +272,8 @@ def test_write_back_remove_restores_everything_and_rebake_does_not_pile_up(tmp_p
     assert classes["roughness < 0.3"]["pixels"] > 0 and classes["roughness >= 0.6"]["pixels"] > 0
     assert sum(c["pixels"] for c in classes.values()) < 2 * 32 * 18  # the world's pixels belong to no class
     materials = errors["flip_by_material"]  # by name: the same pixels less the edges that mix two surfaces
-    assert set(materials) == {"Glossy", "Rough"}, materials
-    for name, roughness_class in (("Glossy", "roughness < 0.3"), ("Rough", "roughness >= 0.6")):
+    assert set(materials) == {glossy.name, rough.name}, materials
+    for name, roughness_class in ((glossy.name, "roughness < 0.3"), (rough.name, "roughness >= 0.6")):
         whole, of_class = materials[name]["pixels"], classes[roughness_class]["pixels"]
         assert of_class / 2 < whole <= of_class and 0 <= materials[name]["flip"] <= 1
         assert 0 <= materials[name]["reference_noise_flip"] <= 1 and materials[name]["rmse"] >= 0

@@ -357,7 +357,7 @@ def test_objects_with_lightmaps_only_render_with_the_lightmap_samples_in_tiles_o
         index = read_index(out / "lightfield", plan.stage_hash("render"))
         atlas, info = read_texel_maps(out)
         texels, images = read_images(out / "lightfield", plan.stage_hash("render"))
-        on_floor = ~texels_of_objects(atlas, info, texels, ["Ball"])
+        on_floor = ~texels_of_objects(atlas, info, texels, [ball.name])
         floors[lightmap_samples] = images[on_floor].mean(axis=(0, 1, 2))
         lightmap_tiles = [t for t in index.tiles if t.file.startswith("lightmap_")]
         if lightmap_samples:
@@ -366,9 +366,9 @@ def test_objects_with_lightmaps_only_render_with_the_lightmap_samples_in_tiles_o
             for tile in index.tiles:  # each tile says on disk what it was rendered with
                 samples = read_exr_metadata(out / "lightfield" / tile.file)["samples"]
                 assert samples == ("2" if tile in lightmap_tiles else "8")
-                ball_texels = texels_of_objects(atlas, info, np.asarray(tile.texels), ["Ball"])
+                ball_texels = texels_of_objects(atlas, info, np.asarray(tile.texels), [ball.name])
                 assert ball_texels.all() if tile not in lightmap_tiles else not ball_texels.any()
-            assert any("(Floor): 2 samples per pixel" in line for line in plan.decisions())
+            assert any(f"({floor.name}): 2 samples per pixel" in line for line in plan.decisions())
             split_hash, split_estimate = plan.stage_hash("render"), plan.render_estimate_s()
         else:
             assert not lightmap_tiles and all(t.samples == 0 for t in index.tiles)
