@@ -442,7 +442,7 @@ def _mono(images):
     return (images @ LUMINANCE)[..., None]
 
 
-def lightfield_tiles(atlas, texel_info, texels, plan, resolution, max_megapixels):
+def plan_lightfield_tiles(atlas, texel_info, texels, plan, resolution, max_megapixels):
     """The texels in render order and the light-field tiles: the texels of objects with SGs first, then, where
     their samples differ, those of objects with lightmaps only in tiles of their own (`lightmap_0000.exr`, ...)
     that carry the lightmap samples."""
@@ -476,8 +476,8 @@ def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: i
     settings = plan.settings
     resolution = settings.lightfield_resolution
     result = RenderResult()
-    texels, lightfield_plan = lightfield_tiles(atlas, texel_info, valid_texels(atlas), plan, resolution,
-                                               max_tile_megapixels)
+    texels, lightfield_plan = plan_lightfield_tiles(atlas, texel_info, valid_texels(atlas), plan, resolution,
+                                                    max_tile_megapixels)
     result.texels = len(texels)
     jobs = [("lightfield", texels, _texel_inputs(atlas, texels), 3)]
     if midpoints > 0 and plan.sg_objects:
