@@ -36,7 +36,7 @@ LOBE_REFIT_STEPS_PRODUCTION = 150  # Adam steps of training/glossy_lobe_fit.py (
 # Production gives every glossy material 16 SGs: on the Production spheres (same light fields) the per-material
 # rule's 8 at roughness 0.4 / 0.5 cost FLIP 0.086 / 0.049 against 0.067 / 0.042 with 16 (section 23).
 # Objects with only irradiance lightmaps need the light field's cosine-weighted mean, not its detail: Production
-# renders them at 64 spp (R = 32: 4x Preview's rays per texel), not 256 (docs/design-additions.md section 23).
+# renders them at 64 spp (R = 32: 4x Preview's samples per texel), not 256 (docs/design-additions.md section 23).
 LIGHTMAP_SAMPLES_PRODUCTION = 64
 PRESETS = {
     "draft": dict(texel_density=4.0, lightfield_resolution=16, samples=16, sg_count=16, training_budget_s=30.0,
