@@ -191,10 +191,14 @@ class BakePlan:
         return max((m.sg_count for o in self.baked_objects for m in o.materials if m.glossy), default=0)
 
     @property
-    def lightmap_only_texels(self) -> int:
-        """Texels of baked objects without SGs: rendered at the settings' lightmap_pass_samples."""
+    def lightmap_only_objects(self) -> list[ObjectPlan]:
+        """Baked objects without SGs: their texels are rendered at the settings' lightmap_pass_samples."""
         with_sgs = set(self.sg_objects)
-        return sum(o.texels for o in self.baked_objects if o.name not in with_sgs)
+        return [o for o in self.baked_objects if o.name not in with_sgs]
+
+    @property
+    def lightmap_only_texels(self) -> int:
+        return sum(o.texels for o in self.lightmap_only_objects)
 
     def render_estimate_s(self) -> float:
         r, settings, lightmap = self.settings.lightfield_resolution, self.settings, self.lightmap_only_texels
@@ -218,9 +222,8 @@ class BakePlan:
         if self.irradiance_only_materials:
             lines.append("irradiance lightmap only (rough, no SGs): " + ", ".join(self.irradiance_only_materials))
         if self.lightmap_only_texels and self.settings.lightmap_pass_samples != self.settings.samples:
-            with_sgs = set(self.sg_objects)
-            names = [o.name for o in self.baked_objects if o.name not in with_sgs]
-            lines.append(f"light fields of objects with lightmaps only ({', '.join(names)}): "
+            names = ", ".join(o.name for o in self.lightmap_only_objects)
+            lines.append(f"light fields of objects with lightmaps only ({names}): "
                          f"{self.settings.lightmap_pass_samples} samples per pixel (irradiance needs their mean), "
                          f"the others {self.settings.samples}")
         lines.append(f"environment: {self.environment.reason}")
