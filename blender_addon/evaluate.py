@@ -260,6 +260,7 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144
     cameras = _view_cameras(scene, plan, views)
     results, references, tests, eevee = [], [], [], {}
     flip_maps, roughness_maps, material_maps, squared_maps, noise_flip_maps = [], [], [], [], []
+    noise_squared_maps = []  # per pixel ((half A - half B) / 2)^2: the full reference's noise variance, unbiased
     try:
         render.engine = "CYCLES"
         render.resolution_x, render.resolution_y, render.resolution_percentage = *resolution, 100
@@ -287,6 +288,7 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144
                 roughness_maps.append(roughness)
                 material_maps.append(materials)
                 noise = rmse(tonemap(half_a), tonemap(half_b)) / 2
+                noise_squared_maps.append((((tonemap(half_a) - tonemap(half_b)) / 2) ** 2).mean(axis=-1))
                 # FLIP between the two half-sample references: the floor no bake can get under at this sample count
                 noise_flip_maps.append(flip(tonemap(half_a), tonemap(half_b))[1])
                 picture = f"evaluate_view{k}.png"
@@ -312,10 +314,12 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144
     errors["views"] = results
     errors["flip_by_roughness"] = flip_by_roughness(flip_maps, roughness_maps, squared_maps)
     errors["reference_noise_flip"] = float(np.mean([m.mean() for m in noise_flip_maps]))
-    errors["reference_noise_flip_by_roughness"] = flip_by_roughness(noise_flip_maps, roughness_maps)
+    errors["reference_noise_flip_by_roughness"] = flip_by_roughness(noise_flip_maps, roughness_maps,
+                                                                    noise_squared_maps)
     errors["flip_by_material"] = flip_by_material(flip_maps, material_maps, material_names, squared_maps)
-    for name, entry in flip_by_material(noise_flip_maps, material_maps, material_names).items():
+    for name, entry in flip_by_material(noise_flip_maps, material_maps, material_names, noise_squared_maps).items():
         errors["flip_by_material"][name]["reference_noise_flip"] = entry["flip"]
+        errors["flip_by_material"][name]["reference_noise_rmse"] = entry["rmse"]
     errors["eevee"] = eevee
     errors["reference_samples"], errors["test_samples"] = reference_samples, test_samples
     seconds = time.perf_counter() - start

@@ -62,8 +62,10 @@ def find_torch_python(preferred: str = "") -> str | None:
 
 class BakeJob:
     def __init__(self, scene, settings, out_dir, *, stages=ALL_STAGES, share=None, midpoints=0,
-                 tile_megapixels=4.0, lightmap_uv="", pack_images=True, training="auto", torch_python=""):
-        """training: 'in_process' (this Python has torch), 'worker' (a subprocess), or 'auto'."""
+                 tile_megapixels=4.0, lightmap_uv="", pack_images=True, training="auto", torch_python="",
+                 reference_samples=0):
+        """training: 'in_process' (this Python has torch), 'worker' (a subprocess), or 'auto'. reference_samples:
+        the evaluate stage's path-traced reference spp (0: reference_samples_for the settings)."""
         unknown = [s for s in stages if s not in ALL_STAGES]
         if unknown:
             raise BakeInputError(f"unknown stage(s) {unknown}")
@@ -72,7 +74,7 @@ class BakeJob:
             raise BakeInputError(f"{out_dir}: exists and is not a directory")
         self.stages = [s for s in ALL_STAGES if s in stages]
         self.options = dict(share=share, midpoints=midpoints, tile_megapixels=tile_megapixels,
-                            lightmap_uv=lightmap_uv, pack_images=pack_images)
+                            lightmap_uv=lightmap_uv, pack_images=pack_images, reference_samples=reference_samples)
         self.training, self.torch_python = training, torch_python
         self.plan = build_plan(scene, settings)
         write_json_atomic(self.out_dir / "plan.json", self.plan.to_dict())
@@ -244,7 +246,7 @@ class BakeJob:
         except ImportError:
             from blender_addon.evaluate import evaluate_stage, reference_samples_for
 
-        samples = reference_samples_for(self.plan.settings)
+        samples = self.options["reference_samples"] or reference_samples_for(self.plan.settings)
         yield "evaluate", self._overall("evaluate", 0.0), f"reference ({samples} spp) and baked renders"
         return evaluate_stage(self.scene, self.plan, self.out_dir, reference_samples=samples)
 

@@ -58,6 +58,8 @@ def parse_args(args: list[str]) -> argparse.Namespace:
                    "the shares merge in the bake directory")
     p.add_argument("--midpoints", type=int, default=0, metavar="M",
                    help="also render M held-out light fields at texel midpoints (interpolation metric)")
+    p.add_argument("--reference-samples", type=int, default=0, metavar="N",
+                   help="the evaluate stage's path-traced reference spp (0: twice --samples, at least 128)")
     p.add_argument("--tile-megapixels", type=float, default=4.0, help="render pixels per tile (memory)")
     p.add_argument("--in-place", action="store_true", help="save the baked scene over --blend instead of DIR/baked.blend")
     p.add_argument("--external-images", action="store_true",
@@ -215,7 +217,8 @@ def stage_summary(stage: str, result, plan) -> tuple[str, list]:
         eevee_text = (f"; EEVEE FLIP {eevee['flip']:.4f}, PSNR {eevee['psnr']:.2f} dB (first render "
                       f"{eevee['first_render_s']:.1f} s incl. shaders)" if "flip" in eevee else "")
         return (f"RMSE {result['rmse']:.4f}, PSNR {result['psnr']:.2f} dB, FLIP {result['flip']:.4f} over "
-                f"{len(result['views'])} views (reference noise RMSE {result['reference_noise_rmse']:.4f})"
+                f"{len(result['views'])} views against {result['reference_samples']}-spp references (their noise RMSE "
+                f"{result['reference_noise_rmse']:.4f})"
                 + eevee_text), ([f"EEVEE not evaluated: {eevee['error']}"] if "error" in eevee else []) + \
             [f"EEVEE could not compile a material's shader (it renders magenta): {error}"
              for error in eevee.get("shader_errors", ())]
@@ -245,12 +248,14 @@ def run(ns, reporter: Reporter) -> int:
         raise BakeInputError(f"--tile-megapixels {ns.tile_megapixels} is outside 0..256")
     if not 0 <= ns.midpoints <= 100_000:
         raise BakeInputError(f"--midpoints {ns.midpoints} is outside 0..100000")
+    if ns.reference_samples != 0 and not 2 <= ns.reference_samples <= 65536:
+        raise BakeInputError(f"--reference-samples {ns.reference_samples} is outside 2..65536 (0: automatic)")
     if ns.in_place and not ns.blend:
         raise BakeInputError("--in-place needs --blend FILE (the file to overwrite)")
     scene = load_scene(ns)
     job = BakeJob(scene, settings, out, stages=[] if ns.plan_only else ns.stages, share=ns.tile,
                   midpoints=ns.midpoints, tile_megapixels=ns.tile_megapixels, lightmap_uv=ns.lightmap_uv,
-                  pack_images=not ns.external_images)
+                  pack_images=not ns.external_images, reference_samples=ns.reference_samples)
     plan, data = job.plan, job.plan.to_dict()
     reporter.event("plan", summary=data["summary"], hash=data["hash"], texels=data["texels"],
                    decisions=plan.decisions(), warnings=plan.warnings, path=str(out / "plan.json"))

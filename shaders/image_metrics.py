@@ -26,6 +26,14 @@ def psnr(a: np.ndarray, b: np.ndarray, mask=None) -> float:
     return float("inf") if error == 0 else float(20 * np.log10(1.0 / error))
 
 
+def rmse_against_converged(rmse_to_reference: float, reference_noise_rmse: float) -> float:
+    """The RMSE a test image would have against the converged reference, from its RMSE against a noisy reference
+    and that reference's noise RMSE (unbiased from two independent halves: RMSE(half A, half B) / 2). The
+    reference's noise is independent of the test image, so mean squares add: E|t - r|^2 = |t - c|^2 + E|r - c|^2.
+    0 where the noise explains all of the difference."""
+    return float(np.sqrt(max(rmse_to_reference ** 2 - reference_noise_rmse ** 2, 0.0)))
+
+
 def flip(reference_ldr: np.ndarray, test_ldr: np.ndarray):
     """(mean FLIP, per-pixel FLIP map (H, W)) of two sRGB-encoded [0, 1] images."""
     import flip_evaluator

@@ -9,8 +9,10 @@ from pathlib import Path
 
 try:
     from .atomic import atomic_output
+    from .image_metrics import rmse_against_converged
 except ImportError:
     from shaders.atomic import atomic_output
+    from shaders.image_metrics import rmse_against_converged
 
 PICTURE_CAPTIONS = [
     ("capture_position.png", "Texel positions (atlas)"), ("capture_normal.png", "Texel shading normals"),
@@ -69,6 +71,13 @@ def write_report_html(out_dir) -> Path:
              if key in errors]
     rows += [(f"FLIP where {name}", entry["flip"]) for name, entry in errors.get("flip_by_roughness", {}).items()
              if entry.get("pixels")]
+    noise_by_class = errors.get("reference_noise_flip_by_roughness", {})
+    rows += [(f"RMSE where {name}", f"{entry['rmse']:.4f} (against the converged image "
+              f"{rmse_against_converged(entry['rmse'], noise_by_class[name]['rmse']):.4f}; the reference's noise "
+              f"{noise_by_class[name]['rmse']:.4f})")
+             for name, entry in errors.get("flip_by_roughness", {}).items()
+             if entry.get("pixels") and entry.get("rmse") is not None
+             and (noise_by_class.get(name) or {}).get("rmse") is not None]
     rows += [(f"FLIP of the reference's own noise where {name} (the floor)", entry["flip"])
              for name, entry in errors.get("reference_noise_flip_by_roughness", {}).items() if entry.get("pixels")]
     rows += [(f"FLIP on material '{name}'", f"{entry['flip']:.4f} (the reference's noise there: "

@@ -277,6 +277,9 @@ def test_write_back_remove_restores_everything_and_rebake_does_not_pile_up(tmp_p
         whole, of_class = materials[name]["pixels"], classes[roughness_class]["pixels"]
         assert of_class / 2 < whole <= of_class and 0 <= materials[name]["flip"] <= 1
         assert 0 <= materials[name]["reference_noise_flip"] <= 1 and materials[name]["rmse"] >= 0
+        assert 0 < materials[name]["reference_noise_rmse"] < 1  # 4 + 4 spp halves: some noise, finite
+    noise_classes = errors["reference_noise_flip_by_roughness"]
+    assert all(0 < noise_classes[c]["rmse"] < 1 for c in ("roughness < 0.3", "roughness >= 0.6"))
     eevee = errors["eevee"]  # EEVEE, the engine the bake is for, renders the same views
     assert "error" not in eevee, eevee
     assert len(eevee["views"]) == 2 and (tmp_path / "evaluate_view1_eevee.png").is_file()
@@ -286,7 +289,9 @@ def test_write_back_remove_restores_everything_and_rebake_does_not_pile_up(tmp_p
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["errors"]["flip"] == errors["flip"] and set(report["timings_s"]) >= {"capture", "render", "train",
                                                                                         "apply", "evaluate"}
-    assert "data:image/png;base64" in (tmp_path / "report.html").read_text()
+    page = (tmp_path / "report.html").read_text()
+    assert "data:image/png;base64" in page and "RMSE where roughness &lt; 0.3" in page
+    assert "against the converged image" in page
     assert remove_bake(scene) == 3  # the floor's slot and the slot of each instance (they share the mesh and slot)
     assert ball.material_slots[0].material == glossy and twin.material_slots[0].material == glossy
     assert floor.material_slots[0].material == rough and "Rough (SG bake)" not in bpy.data.materials

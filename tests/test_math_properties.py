@@ -1,6 +1,7 @@
 """Property tests (hypothesis): numpy == torch, no NaN/Inf at the extremes, ranges, gradients,
-octahedral round trips and half-float storage of SG parameters."""
+octahedral round trips, half-float storage of SG parameters, and the reference-noise correction of RMSE."""
 import numpy as np
+import pytest
 import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -198,3 +199,18 @@ def test_half_float_roundtrip_of_sg_parameters(axis, lam, amp, view):
     stored = m.sg_eval(v, a2, lam2, mu2)
     bound = 2e-3 if lam <= 100 else 8e-2
     assert np.all(np.abs(stored - exact) <= bound * amp + 6e-8 * scale)
+
+
+def test_rmse_against_converged_removes_the_noise_of_a_two_half_reference():
+    from shaders.image_metrics import rmse, rmse_against_converged
+
+    rng = np.random.default_rng(7)
+    converged = rng.uniform(0.2, 0.8, (144, 256, 3))
+    test = converged + 0.02 * np.sin(np.arange(256) / 9.0)[None, :, None]  # a structured error, RMSE ~0.014
+    half_a, half_b = (converged + rng.normal(0, 0.03, converged.shape) for _ in range(2))
+    reference = 0.5 * (half_a + half_b)
+    noise = rmse(half_a, half_b) / 2
+    raw, truth = rmse(test, reference), rmse(test, converged)
+    assert raw > 1.3 * truth  # the reference's noise inflates the error against it
+    assert rmse_against_converged(raw, noise) == pytest.approx(truth, rel=0.03)
+    assert rmse_against_converged(noise, 2 * noise) == 0.0  # noise explains everything: 0, never NaN

@@ -186,6 +186,7 @@ def test_cli_production_plan_gives_16_sgs_everywhere_and_the_floor_its_lightmap_
 @pytest.mark.parametrize("args, message", [
     (["--blend", "/nonexistent/scene.blend"], "scene.blend: .blend file not found"),
     (["--scene", "demo:nope"], "unknown demo scene"),
+    (["--scene", "demo:spheres", "--reference-samples", "1"], "--reference-samples 1 is outside 2..65536"),
 ])
 def test_cli_bad_input_is_one_line_and_nonzero(tmp_path, args, message):
     out = _bake(*args, "--out", str(tmp_path / "o"))
