@@ -188,7 +188,8 @@ def _shaded_error_summary(lightfield_metrics: dict) -> str:
         text += (f"; between texels where the lobes were refitted {sum(after) / len(after):.4f} (before "
                  f"{sum(before.values()) / len(before):.4f})")
         lobes_reverted = refit["lobes"]["reverted_for"]
-        text += f"; lobe refit not kept for {', '.join(lobes_reverted)}" if lobes_reverted else ""
+        text += (f"; lobe refit not kept for {', '.join(lobes_reverted)} (it raised that error more than "
+                 f"{refit['lobes'].get('tolerance', 1)}x)" if lobes_reverted else "")
     return text
 
 

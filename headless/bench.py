@@ -570,9 +570,14 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 16,
                      "rmse_by_roughness": {k: None if v["rmse"] is None else round(v["rmse"], 4)
                                            for k, v in classes.items()},
                      "flip_by_material": {k: round(v["flip"], 4) for k, v in errors["flip_by_material"].items()}})
-    print(f"\nencoders at equal bytes (spheres, {texel_density:g} texels/m, R = {resolution}, {samples} spp; "
-          f"CNN {budget_s:g} s; "
-          f"{reference_samples}-spp references); reflected radiance error against the rendered light fields, "
+    _print_encoders(rows, f"spheres, {texel_density:g} texels/m, R = {resolution}, {samples} spp; "
+                    f"CNN {budget_s:g} s; {reference_samples}-spp references")
+    return rows
+
+
+def _print_encoders(rows: list[dict], setting: str):
+    """The encoders section's table, the reflected error split and the ratios at equal bytes."""
+    print(f"\nencoders at equal bytes ({setting}); reflected radiance error against the rendered light fields, "
           "per sphere's roughness")
     print(f"  {'encoder':<24} {'bytes':>5} {'glossy RMSE':>11} {'(converged)':>11} {'glossy FLIP':>11} {'FLIP':>7}  "
           "reflected error")
@@ -600,7 +605,6 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 16,
               f"{converged:.2f} (target >= 2; by class: {by_class}), "
               f"glossy FLIP {baseline['glossy_flip'] / free['glossy_flip']:.2f}, "
               f"reflected error {_mean_value(baseline['reflected_error']) / _mean_value(free['reflected_error']):.2f}")
-    return rows
 
 
 ENCODING_SPLIT_TEXELS = 96  # texels per sphere the encoders section splits the reflected error of (~20 s each)

@@ -113,6 +113,8 @@ def write_report_html(out_dir) -> Path:
         rows.append(("lobe refit (axes, sharpness, amplitudes)",
                      f"{lobes.get('steps')} steps on {lobes.get('texels')} texels at roughness >= "
                      f"{lobes.get('min_roughness')} in {lobes.get('seconds', 0):.1f} s"
+                     + (f"; kept unless it raised the error between texels more than {lobes['tolerance']}x"
+                        if "tolerance" in lobes else "")
                      + "".join(f"; not kept for {material} (it raised the error between texels to {error:.4f})"
                                for material, error in lobes.get("reverted_for", {}).items())))
     for key, value in rows:

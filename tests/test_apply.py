@@ -420,10 +420,10 @@ def test_each_material_gets_the_sg_count_its_roughness_needs(tmp_path):
     metrics = train_stage(tmp_path, plan).metrics["lightfield"]
     atlas, info = read_texel_maps(tmp_path)
     # amplitudes refitted through the glossy where the lobe spans half a pixel of R = 16 (roughness >= 0.33), lobes
-    # where it spans 1.5 pixels (>= 0.58)
+    # where it spans 3/4 of a pixel (>= 0.41)
     refit, shaded = metrics["amplitude_refit"], metrics["shaded_error"]
     assert refit["min_roughness"] == pytest.approx(0.33, abs=0.01)
-    assert refit["lobes"]["min_roughness"] == pytest.approx(0.576, abs=0.001)
+    assert refit["lobes"]["min_roughness"] == pytest.approx(0.408, abs=0.001)
     rougher_texels = int(((channels(atlas, "valid") > 0) & (channels(atlas, "material_id") == next(
         m["id"] for m in info["materials"] if m["name"] == "Rougher"))).sum())
     assert refit["texels"] == rougher_texels > 0
@@ -434,11 +434,13 @@ def test_each_material_gets_the_sg_count_its_roughness_needs(tmp_path):
     assert set(refit["kept_for"]) | set(refit["reverted_for"]) | set(refit["reverted_between_texels_for"]) == \
         {"Rougher"}
     assert shaded["Rougher"] <= refit["shaded_error_before"]["Rougher"]
-    # the lobe refit, too, is kept only where it lowers the error between texels (SGs blended as the shader does)
+    # the lobe refit, too, is kept only where it does not raise the error between texels (SGs blended as the shader
+    # does) by more than its tolerance
     lobes, between = refit["lobes"], metrics["interpolated_shaded_error"]
-    assert lobes["steps"] == 10 and lobes["texels"] == rougher_texels
+    assert lobes["steps"] == 10 and lobes["texels"] == rougher_texels and lobes["tolerance"] == 1.15
     assert set(lobes["kept_for"]) | set(lobes["reverted_for"]) == {"Rougher"}
-    assert set(between) == {"Rougher"} and 0 <= between["Rougher"] <= lobes["interpolated_error_before"]["Rougher"]
+    assert set(between) == {"Rougher"}
+    assert 0 <= between["Rougher"] <= lobes["tolerance"] * lobes["interpolated_error_before"]["Rougher"]
     page = (tmp_path / "report.html").read_text()  # the report and the command line say what the refits did
     assert "lobe refit (axes, sharpness, amplitudes)</th><td>10 steps on " in page
     assert "glossy error between texels (SGs blended), Rougher" in page

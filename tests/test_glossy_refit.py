@@ -216,3 +216,7 @@ def test_refit_is_kept_per_material_only_where_it_lowers_the_held_out_error():
     assert kept == ["better"] and reverted == {"worse": 0.25}
     assert (result[:2] == 2).all() and (result[2:] == 1).all()
     assert (trained == 1).all()  # inputs untouched
+    # with a tolerance (the lobe refit's), a rise below the factor is kept and a larger one is not
+    _, kept, reverted = keep_refit_where_better((trained,), (refitted,), {"better": 0.3, "worse": 0.2},
+                                                {"better": 0.33, "worse": 0.25}, atlas, info, texels, tolerance=1.15)
+    assert kept == ["better"] and reverted == {"worse": 0.25}

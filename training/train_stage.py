@@ -138,12 +138,13 @@ def interpolated_errors(images, normals, axis, sharpness, amplitude, atlas, texe
 
 
 def keep_refit_where_better(trained: tuple, refitted: tuple, before: dict, after: dict, atlas, texel_info: dict,
-                            texels):
+                            texels, tolerance: float = 1.0):
     """Per material, the refitted values where they lower the held-out glossy error (`before` and `after` map
-    material name -> error), the trained ones elsewhere: (values, [materials kept], {material: error the refit
-    had}); values are tuples of (T, ...) arrays. Where the GGX lobe is barely wider than a light-field pixel, the
-    quadrature's target aliases and the refit can fit that (measured on the Production spheres, R = 32: roughness
-    0.3 went 0.29 -> 0.34 on held-out views, FLIP 0.077 -> 0.092)."""
+    material name -> error; with a tolerance > 1, where they raise it less than that factor), the trained ones
+    elsewhere: (values, [materials kept], {material: error the refit had}); values are tuples of (T, ...) arrays.
+    Where the GGX lobe is barely wider than a light-field pixel, the quadrature's target aliases and the refit can
+    fit that (measured on the Production spheres, R = 32: roughness 0.3 went 0.29 -> 0.34 on held-out views, FLIP
+    0.077 -> 0.092)."""
     material_ids = texel_material_ids(atlas, texels)
     result = tuple(np.array(value, copy=True) for value in trained)
     kept, reverted = [], {}
@@ -152,7 +153,7 @@ def keep_refit_where_better(trained: tuple, refitted: tuple, before: dict, after
         if name not in before or name not in after:
             continue
         members = material_ids == material["id"]
-        if after[name] < before[name]:
+        if after[name] < before[name] * tolerance:
             for value, new in zip(result, refitted):
                 value[members] = new[members]
             kept.append(name)
@@ -222,7 +223,7 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
     import torch
 
     from training.baselines import bytes_per_texel_fixed_sg, bytes_per_texel_sh_l2, eval_sh, fit_fixed_sg, fit_sh_l2
-    from training.glossy_lobe_fit import lobe_refit_min_roughness, lobe_refit_steps
+    from training.glossy_lobe_fit import LOBE_REFIT_GUARD_TOLERANCE, lobe_refit_min_roughness, lobe_refit_steps
     from training.glossy_refit import refit_min_roughness, refit_steps
     from training.sg_fit import (LightFieldData, TrainConfig, Trainer, energy_kept, error_metrics,
                                  midpoint_parameters, pair_indices, reconstruct, unit_midpoint)
@@ -347,9 +348,10 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
                                                      only=groups)
                     lobe_before = {name: error for name, error in interpolated.items() if name in groups}
                     (axis, sharpness, amplitude), lobe_kept, lobe_reverted = keep_refit_where_better(
-                        (axis, sharpness, amplitude), refitted, lobe_before, lobe_after, atlas, texel_info, texels)
+                        (axis, sharpness, amplitude), refitted, lobe_before, lobe_after, atlas, texel_info, texels,
+                        LOBE_REFIT_GUARD_TOLERANCE)
                     refit_report["lobes"] = {"seconds": round(time.perf_counter() - lobe_start, 2), "steps": lobe_steps,
-                                             "texels": lobe_texels,
+                                             "texels": lobe_texels, "tolerance": LOBE_REFIT_GUARD_TOLERANCE,
                                              "min_roughness": round(lobe_refit_min_roughness(images.shape[1]), 3),
                                              "interpolated_error_before": lobe_before, "kept_for": lobe_kept,
                                              "reverted_for": lobe_reverted}
