@@ -287,10 +287,11 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144
                 roughness, materials, material_names = surface_images(scene, camera, Path(tmp) / "surface.exr")
                 roughness_maps.append(roughness)
                 material_maps.append(materials)
-                noise = rmse(tonemap(half_a), tonemap(half_b)) / 2
-                noise_squared_maps.append((((tonemap(half_a) - tonemap(half_b)) / 2) ** 2).mean(axis=-1))
+                half_a_ldr, half_b_ldr = tonemap(half_a), tonemap(half_b)
+                noise_squared_maps.append((((half_a_ldr - half_b_ldr) / 2) ** 2).mean(axis=-1))
+                noise = float(np.sqrt(noise_squared_maps[-1].mean()))  # = RMSE(half A, half B) / 2
                 # FLIP between the two half-sample references: the floor no bake can get under at this sample count
-                noise_flip_maps.append(flip(tonemap(half_a), tonemap(half_b))[1])
+                noise_flip_maps.append(flip(half_a_ldr, half_b_ldr)[1])
                 picture = f"evaluate_view{k}.png"
                 gap = np.ones((ref_ldr.shape[0], 2, 3))
                 save_png(out_dir / picture, np.concatenate([ref_ldr, gap, ours_ldr, gap, heat(flip_map, 1.0)], axis=1),

@@ -523,6 +523,7 @@ def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: i
             env_radiance = None
             for kind, kind_dir, index, tile, (positions, normals, offsets) in work:
                 flags = np.ones(len(positions))
+                samples = tile_samples(index, tile)
                 tick = time.perf_counter()
                 if kind == "env_visibility":
                     if env_radiance is None:
@@ -550,21 +551,21 @@ def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: i
                                               tile.columns, tile.rows)
                     result.env_post_seconds += time.perf_counter() - post
                 else:
-                    renderer.configure(kind, tile_samples(index, tile))
+                    renderer.configure(kind, samples)
                     pixels = renderer.render(positions, normals, offsets, flags, tile.columns, tile.rows,
                                              resolution, f"{kind}_{tile.index}")
                     seconds = time.perf_counter() - tick
                     render_seconds += seconds
-                    rays += len(positions) * resolution * resolution * tile_samples(index, tile) // 2
+                    rays += len(positions) * resolution * resolution * samples // 2
                 if not np.all(np.isfinite(pixels)):
                     result.warnings.append(f"{kind} {tile.file}: non-finite pixels set to 0")
                     pixels = np.nan_to_num(pixels, nan=0.0, posinf=0.0, neginf=0.0)
                 write_exr(kind_dir / tile.file, pixels, precision="half",
                           channels=["R", "G", "B"][:index.channels] if index.channels == 3 else ["Y"],
                           metadata={"plan_hash": plan_hash, "tile_hash": tile.hash, "resolution": resolution,
-                                    "samples": tile_samples(index, tile), "kind": kind})
+                                    "samples": samples, "kind": kind})
                 result.tiles_rendered[kind] += 1
-                finished_work += len(tile.texels) * tile_samples(index, tile)
+                finished_work += len(tile.texels) * samples
                 yield finished_work / total_work, f"{kind} {tile.file} done ({len(tile.texels)} texels)"
     pictures = _save_previews(out_dir, plan_hash, [kind for kind, *_ in jobs])
     result.seconds = time.perf_counter() - start
