@@ -362,12 +362,12 @@ def render_background(scene, camera_obj, width: int, height: int, samples: int, 
 
 
 def filter_hair(scene, out_dir, model_path=None, width: int | None = None, height: int | None = None,
-                background_samples: int = 16, passes: int = DEFAULT_PASSES, network: str = "base",
+                background_samples: int = 16, passes: int = DEFAULT_PASSES, network: str | None = None,
                 progress=lambda fraction, message: None) -> HairFilterResult:
     """Render the cheap stochastic input for the scene's camera, filter it with the ONNX model through
     onnxruntime, composite colour factor x hair colour + highlight over a Cycles render of the rest of the
     scene, and write filtered.exr / filtered.png / unfiltered.png / hair_filter.json into out_dir. The model is
-    `model_path`, or else the shipped `network` (base: faster; large: more accurate)."""
+    `model_path`, or else the shipped `network` (base: faster; large: more accurate; None: the default, large)."""
     try:
         from ..shaders.bake_report import save_png
         from ..shaders.hair_filter import load_filter

@@ -24,8 +24,10 @@ writes them to bench_out/bench.json.
   sgcount   how many SGs a material needs, by roughness: the CNN at N = 2..16 on spheres and room, error of the
             reflected radiance; the measured rule behind shaders/bake_plan.py SG_COUNT_BY_ROUGHNESS; sg_count.png.
   encoders  free SGs against fixed SG12 and L2 SH (each baked, applied, evaluated) at equal bytes per texel, on spheres:
-            RMSE and FLIP on glossy pixels (and per roughness class), reflected-radiance error of each sphere's
-            texels at its roughness, split into the SGs' fit and the closed form's error. Target: >= 2x lower RMSE.
+            RMSE and FLIP on glossy pixels (and per roughness class; RMSE also against the converged image),
+            reflected-radiance error of each sphere's texels at its roughness, split into the SGs' fit and the
+            closed form's error. R = 32 with Production's lobe refit unless --encoder-* say otherwise. Target: >= 2x
+            lower RMSE.
   stability the numerical-stability sweep: `spheres` at roughness 0 and 1, a 1e5 emitter, no light, scale 1e4 and
             1e-3, each baked and evaluated: every output finite, and the errors.
   hair      the hair filter (headless/bench_hair.py): onnxruntime time at 1024^2, PSNR/FLIP against Cycles
@@ -42,7 +44,8 @@ from pathlib import Path
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from shaders.bake_plan import PRESETS, BakeSettings, write_json_atomic  # noqa: E402
+from shaders.bake_plan import (  # noqa: E402
+    LIGHTFIELD_RESOLUTIONS, LOBE_REFIT_STEPS_PRODUCTION, PRESETS, BakeSettings, write_json_atomic)
 
 CAPTURE_TARGET_S = 10.0
 SECTIONS = ("capture", "render", "train", "sgcount", "encoders", "knobs", "apply", "presets", "stability", "hair")
@@ -483,16 +486,19 @@ def _mean_value(by_key: dict) -> float:
     return sum(by_key.values()) / max(len(by_key), 1)
 
 
-def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 16, samples: int = 32,
-                   reference_samples: int = 128, texel_density: float = 4.0) -> list[dict]:
+def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 32, samples: int = 32,
+                   reference_samples: int = 128, texel_density: float = 4.0,
+                   lobe_refit_steps: int = LOBE_REFIT_STEPS_PRODUCTION) -> list[dict]:
     """The free SGs against the production lightmappers' encodings at equal bytes per texel, on `spheres`: CNN with
     5 SGs (70 B) against fixed SG12 by NNLS (72 B), and CNN with 4 SGs (56 B) against L2 SH (54 B, shaded by the
     SH variant of the node group); each baked, applied and evaluated against Cycles (RMSE and FLIP on glossy
     pixels), plus the numpy error of the reflected radiance per material (glossy_error of its texels at its
     roughness, against the rendered light fields; the floor is an irradiance lightmap and has no SGs), and for the
     SG encoders that error split into the SGs' fit and the node group's closed form (encoding_error_split). The
-    light fields are Draft's (R = 16, 32 spp, 4 texels per metre) unless given; docs/design-additions.md §18 has the
-    ratios at R = 32 and at 128 spp, §19 the split, §22 the ratio against texel density."""
+    light fields are Production's resolution (R = 32) at Draft's density (4 texels per metre) and 32 spp, and the
+    free SGs get Production's lobe refit (lobe_refit_steps; it reaches roughness >= lobe_refit_min_roughness(R):
+    0.29 at R = 32, 0.41 at R = 16); the baselines' fixed lobes have nothing to refit. docs/design-additions.md
+    §18 has the ratios at R = 16 and at 128 spp, §19 the split, §22 against texel density, §25 this setting's."""
     import numpy as np
 
     from blender_addon.apply import apply_stage, remove_bake
@@ -523,8 +529,10 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 16,
         scene = build_demo_scene("spheres")
         plan = build_plan(scene, BakeSettings.from_preset("draft", lightfield_resolution=resolution, samples=samples,
                                                           sg_count=sg_count, uniform_sg_count=True,
-                                                          training_budget_s=budget_s, texel_density=texel_density))
-        out = out_root / f"encoders_{encoder}{sg_count}_density{texel_density:g}"
+                                                          training_budget_s=budget_s, texel_density=texel_density,
+                                                          lobe_refit_steps=lobe_refit_steps))
+        out = out_root / f"encoders_{encoder}{sg_count}_density{texel_density:g}_r{resolution}_{samples}spp" \
+            f"{f'_lobes{lobe_refit_steps}' if lobe_refit_steps else ''}"
         start = time.perf_counter()
         capture(scene, plan, out)
         render_stage(scene, plan, out)
@@ -571,7 +579,8 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 16,
                                            for k, v in classes.items()},
                      "flip_by_material": {k: round(v["flip"], 4) for k, v in errors["flip_by_material"].items()}})
     _print_encoders(rows, f"spheres, {texel_density:g} texels/m, R = {resolution}, {samples} spp; "
-                    f"CNN {budget_s:g} s; {reference_samples}-spp references")
+                    f"CNN {budget_s:g} s{f' + {lobe_refit_steps} lobe-refit steps' if lobe_refit_steps else ''}; "
+                    f"{reference_samples}-spp references")
     return rows
 
 
@@ -748,6 +757,16 @@ def main(argv=None) -> int:
                    "with the texel count)")
     p.add_argument("--encoder-reference-samples", type=int, default=128, metavar="SPP",
                    help="encoders section: spp of the path-traced references (default 128)")
+    p.add_argument("--encoder-resolution", type=int, default=32, metavar="R",
+                   help="encoders section: light-field resolution R, a power of two (default 32, Production's)")
+    p.add_argument("--encoder-samples", type=int, default=32, metavar="SPP",
+                   help="encoders section: light-field samples per pixel (default 32)")
+    p.add_argument("--encoder-training-budget", type=float, metavar="SECONDS",
+                   help="encoders section: the CNN's seconds per free-SG bake (default 60, 30 with --quick, times the "
+                   "texel count's growth with --encoder-density)")
+    p.add_argument("--encoder-lobe-refit-steps", type=int, default=LOBE_REFIT_STEPS_PRODUCTION, metavar="STEPS",
+                   help=f"encoders section: the free SGs' lobe refit (default {LOBE_REFIT_STEPS_PRODUCTION}, "
+                   "Production's; 0: off)")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
                    help="render and presets sections: Cycles (and the training) on the CPU or on OptiX GPUs and CUDA "
                    "(the render section's numbers are kept apart in bench.json as render_cuda)")
@@ -760,6 +779,11 @@ def main(argv=None) -> int:
         p.error("--encoder-density takes 0.5 to 64 texels per metre")
     if not 2 <= ns.encoder_reference_samples <= 65536:
         p.error("--encoder-reference-samples takes 2 to 65536")
+    if not (ns.encoder_resolution in LIGHTFIELD_RESOLUTIONS and 1 <= ns.encoder_samples <= 4096
+            and 0 <= ns.encoder_lobe_refit_steps <= 100_000
+            and (ns.encoder_training_budget is None or 1 <= ns.encoder_training_budget <= 86_400)):
+        p.error(f"--encoder-resolution takes {', '.join(map(str, LIGHTFIELD_RESOLUTIONS))}, --encoder-samples 1 to "
+                "4096, --encoder-lobe-refit-steps 0 to 100000, --encoder-training-budget 1 to 86400 seconds")
     ns.out.mkdir(parents=True, exist_ok=True)
     scenes = ["room"] if ns.quick else ["room", "spheres", "courtyard"]
     presets = ["draft", "preview"] if ns.quick else list(PRESETS)
@@ -777,9 +801,12 @@ def main(argv=None) -> int:
                                             budget_s=30.0 if ns.quick else 60.0)
     if "encoders" in sections:
         texel_share = (ns.encoder_density / PRESETS["draft"]["texel_density"]) ** 2  # same CNN time per texel
-        results["encoders"] = bench_encoders(ns.out, budget_s=(30.0 if ns.quick else 60.0) * texel_share,
+        budget_s = ns.encoder_training_budget or (30.0 if ns.quick else 60.0) * texel_share
+        results["encoders"] = bench_encoders(ns.out, budget_s=budget_s,
                                              texel_density=ns.encoder_density,
-                                             reference_samples=ns.encoder_reference_samples)
+                                             reference_samples=ns.encoder_reference_samples,
+                                             resolution=ns.encoder_resolution, samples=ns.encoder_samples,
+                                             lobe_refit_steps=ns.encoder_lobe_refit_steps)
     if "knobs" in sections:
         results["knobs"] = bench_knobs(ns.out, "spheres", {"lightfield_resolution": (32,), "samples": (64,)}
                                        if ns.quick else None)

@@ -8,11 +8,15 @@
               PSNR and FLIP against the Cycles reference, composited (hair colour x colour factor +
               highlight over grey) and tone-mapped alike, for: stochastic transparency at 4 and 16 spp
               unfiltered, our filter at 1, 2 and 4 spp (4 mirror passes; at 4 spp also 1 and 2), and Intel
-              Open Image Denoise (pyoidn) on the 4-spp input; on the validation pairs of the trained styles and on the held-out style apart.
+              Open Image Denoise (pyoidn) on the 4-spp input; on the validation pairs of the trained styles, on
+              --unseen-views further views of the trained styles (indices past the dataset's: never trained on nor
+              used to pick weights) and on the held-out style apart, with the per-pair verdicts of the trained
+              styles' two splits pooled too.
               Targets: filtered 4 spp beats unfiltered 16 spp on both metrics, and beats OIDN on 4 spp.
   picture     bench_out/hair_rows.png: input 4 spp | ours | OIDN | reference, a few pairs of each split.
-  candidates  the shipped Large network ("large"), and --candidate NAME=PATH (repeatable): further 4-spp models
-              scored beside the shipped Base one on the same renders (4 mirror passes), timed at 1024x1024 too, with
+  candidates  "ours 4 spp" is the default shipped network (Large); the other shipped one ("base") and --candidate
+              NAME=PATH (repeatable) are further 4-spp models scored beside it on the same renders (4 mirror
+              passes; the 1- and 2-spp filters are Base networks), timed at 1024x1024 too, with
               per-pair differences against it and against 16 spp; Blender builds a groom differently each run, so
               two models compare fairly only inside one run.
 """
@@ -30,7 +34,7 @@ if __package__ in (None, ""):
 
 from shaders import hair_pairs, hair_raster  # noqa: E402
 from shaders.bake_plan import write_json_atomic  # noqa: E402
-from shaders.hair_filter import MODELS_DIR, SHIPPED_MODELS, HairFilterError, load_filter  # noqa: E402
+from shaders.hair_filter import DEFAULT_NETWORK, MODELS_DIR, SHIPPED_MODELS, HairFilterError, load_filter  # noqa: E402
 from shaders.image_metrics import flip, psnr, tonemap  # noqa: E402
 
 HAIR_COLOR, LIGHT, BACKGROUND = np.array(hair_raster.EVALUATION_LOOK[0]), *hair_raster.EVALUATION_LOOK[1:]
@@ -124,11 +128,24 @@ def candidate_filter(path):
     return hair_filter
 
 
+UNSEEN_SPLIT, POOLED_SPLIT = "unseen views (trained styles)", "trained styles, validation and unseen views pooled"
+
+
+def unseen_view_jobs(count: int) -> list[tuple[str, int, str]]:
+    """Views of the trained styles past the dataset's indices: drawn like its pairs, never rendered into it."""
+    from blender_addon import hair
+    from headless import hair_dataset
+
+    first = hair_dataset.PAIRS
+    return [("train", i, hair.TRAIN_STYLES[i % len(hair.TRAIN_STYLES)]) for i in range(first, first + count)]
+
+
 def bench_quality(models: dict, out_root: Path, max_pairs: int = 40, pictures: int = 3,
-                  extra_models: dict | None = None) -> dict:
+                  extra_models: dict | None = None, unseen_views: int = 0) -> dict:
     """The dataset's views (headless/hair_dataset.py draws them from seeds, so no files are needed): its
-    validation pairs of the trained styles and its held-out style, input and Cycles reference rendered here.
-    extra_models: {name: path} of further 4-spp models, scored as "<name> 4 spp"."""
+    validation pairs of the trained styles and its held-out style, and unseen_views more views of the trained
+    styles; input and Cycles reference rendered here. extra_models: {name: path} of further 4-spp models, scored
+    as "<name> 4 spp"."""
     from blender_addon.hair import render_reference
     from headless import hair_dataset
 
@@ -139,9 +156,14 @@ def bench_quality(models: dict, out_root: Path, max_pairs: int = 40, pictures: i
     tables, rows_img = {}, []
     validation = [job for job in jobs if job[0] == "train" and hair_pairs.split_of(job[1]) == "validation"]
     held_out = [job for job in jobs if job[0] == "held_out"]
-    for split_name, views in (("validation (trained styles)", validation), ("held-out style", held_out)):
+    splits = [("validation (trained styles)", validation[:max_pairs]), ("held-out style", held_out[:max_pairs])]
+    if unseen_views:
+        splits.insert(1, (UNSEEN_SPLIT, unseen_view_jobs(unseen_views)))
+    split_scores = {}
+    for split_name, views in splits:
         scores, without_hair = {}, 0
-        for name, index, style in views[:max_pairs]:
+        split_scores[split_name] = scores
+        for name, index, style in views:
             # Blender's hair generator does not give the same strands twice (curve counts differ by ~0.5 %
             # between builds), so the methods are compared on this run's build, input and reference alike.
             objects, strands = groom(style, hair_dataset.DENSITY)
@@ -185,6 +207,14 @@ def bench_quality(models: dict, out_root: Path, max_pairs: int = 40, pictures: i
                                                           ("stochastic 16 spp", "OIDN on 4 spp"))
         for name in candidate_filters:
             tables[split_name]["paired"].update(paired_differences(scores, name, ("stochastic 16 spp", "ours 4 spp")))
+    if unseen_views:  # the trained styles' verdict on every view the networks never trained on
+        validation_scores = split_scores["validation (trained styles)"]
+        pooled = {method: {metric: validation_scores.get(method, {}).get(metric, []) + values[metric]
+                           for metric in values}
+                  for method, values in split_scores[UNSEEN_SPLIT].items()}
+        tables[POOLED_SPLIT] = {"paired": paired_differences(pooled, "ours 4 spp", ("stochastic 16 spp",))}
+        for name in candidate_filters:
+            tables[POOLED_SPLIT]["paired"].update(paired_differences(pooled, name, ("stochastic 16 spp",)))
     if rows_img:
         from shaders.bake_report import save_png
 
@@ -212,16 +242,23 @@ def paired_differences(scores: dict, ours: str, others) -> dict:
 
 
 def shipped_models() -> dict:
-    names = {4: SHIPPED_MODELS["base"].name, 2: "hair_base@2spp.onnx", 1: "hair_base@1spp.onnx"}
+    names = {4: SHIPPED_MODELS[DEFAULT_NETWORK].name, 2: "hair_base@2spp.onnx", 1: "hair_base@1spp.onnx"}
     return {spp: MODELS_DIR / name for spp, name in names.items() if (MODELS_DIR / name).is_file()}
 
 
-def bench_hair(out_root: Path, quick: bool = False, candidates: dict | None = None) -> dict:
-    """The shipped Large network is scored as the candidate "large" beside the shipped Base one."""
+UNSEEN_VIEWS = 48  # the full bench's views past the dataset: with the 24 validation pairs, 72 trained-style views
+
+
+def bench_hair(out_root: Path, quick: bool = False, candidates: dict | None = None,
+               unseen_views: int | None = None) -> dict:
+    """The default shipped network is "ours 4 spp"; the other shipped ones are scored as candidates beside it
+    under their names. unseen_views:
+    None for UNSEEN_VIEWS (0 when quick)."""
     models = shipped_models()
     candidates = dict(candidates or {})
-    if SHIPPED_MODELS["large"].is_file():
-        candidates.setdefault("large", SHIPPED_MODELS["large"])
+    for network, path in SHIPPED_MODELS.items():
+        if network != DEFAULT_NETWORK and path.is_file():
+            candidates.setdefault(network, path)
     result = {"inference": bench_inference(models, size=256 if quick else 1024,
                                            more_4spp_models=candidates.values())}
     for row in result["inference"]:
@@ -232,7 +269,10 @@ def bench_hair(out_root: Path, quick: bool = False, candidates: dict | None = No
               f"{row['stochastic_input_16spp_s']:.2f} s ({row['fragments']} fragments); {row['shadow_maps']} shadow maps "
               f"cost {row['stochastic_input_4spp_s'] / row['stochastic_input_4spp_one_shadow_map_s']:.2f}x one")
     if models:
-        result["quality"] = bench_quality(models, out_root, max_pairs=8 if quick else 40, extra_models=candidates)
+        if unseen_views is None:
+            unseen_views = 0 if quick else UNSEEN_VIEWS
+        result["quality"] = bench_quality(models, out_root, max_pairs=8 if quick else 40, extra_models=candidates,
+                                          unseen_views=unseen_views)
         for split, table in result["quality"].items():
             print(f"\nhair quality, {split} (PSNR dB / FLIP, mean over pairs):")
             for name, row in table.items():
@@ -259,7 +299,12 @@ def main(argv=None) -> int:
     p.add_argument("--quick", action="store_true")
     p.add_argument("--candidate", action="append", default=[], metavar="NAME=PATH",
                    help="another 4-spp ONNX model to score beside the shipped one (repeatable)")
+    p.add_argument("--unseen-views", type=int, metavar="N",
+                   help=f"views of the trained styles past the dataset's to score too (default {UNSEEN_VIEWS}, "
+                   "0 with --quick; about 15 s each)")
     ns = p.parse_args(argv)
+    if ns.unseen_views is not None and not 0 <= ns.unseen_views <= 10_000:
+        p.error("--unseen-views takes 0 to 10000")
     candidates = {}
     for item in ns.candidate:
         name, _, path = item.partition("=")
@@ -271,7 +316,7 @@ def main(argv=None) -> int:
             p.error(f"--candidate {item!r}: {error}")
         candidates[name] = Path(path)
     ns.out.mkdir(parents=True, exist_ok=True)
-    result = bench_hair(ns.out, ns.quick, candidates)
+    result = bench_hair(ns.out, ns.quick, candidates, ns.unseen_views)
     write_json_atomic(ns.out / "bench_hair.json", result)
     return 0
 

@@ -19,7 +19,7 @@ if __package__ in (None, ""):
 
 from headless.bake import Reporter, script_args  # noqa: E402
 from shaders.bake_plan import BakeInputError  # noqa: E402
-from shaders.hair_filter import DEFAULT_PASSES, MIRRORS, SHIPPED_MODELS, HairFilterError  # noqa: E402
+from shaders.hair_filter import DEFAULT_NETWORK, DEFAULT_PASSES, MIRRORS, SHIPPED_MODELS, HairFilterError  # noqa: E402
 
 
 def parse_args(args):
@@ -30,9 +30,9 @@ def parse_args(args):
     p.add_argument("--out", type=Path, required=True)
     model = p.add_mutually_exclusive_group()
     model.add_argument("--model", type=Path, help="ONNX hair filter (default: the shipped network)")
-    model.add_argument("--network", choices=sorted(SHIPPED_MODELS), default="base",
-                       help="shipped network: base (default; 1.7 s at 1024^2 on 2 cores) or large (about 3x the "
-                       "time, lower error)")
+    model.add_argument("--network", choices=sorted(SHIPPED_MODELS), default=DEFAULT_NETWORK,
+                       help=f"shipped network (default {DEFAULT_NETWORK}): large (1.5 s at 1024^2 on 2 cores with 4 "
+                       "passes, the lowest error) or base (about half the time, higher error)")
     p.add_argument("--width", type=int)
     p.add_argument("--height", type=int)
     p.add_argument("--background-samples", type=int, default=16)

@@ -24,6 +24,7 @@ PLAN_VERSION = 1
 GLOSSY_ROUGHNESS_MAX = 0.6
 ROUGH_METALLIC_MAX = 0.5  # a rough material at least this metallic is shaded with SGs
 ROUGH_MATERIALS = ("irradiance", "renderer")
+LIGHTFIELD_RESOLUTIONS = (8, 16, 32, 64, 128)  # powers of two: training/sg_fit.SGEncoder pools them to 4 x 4
 
 # Chosen from `python -m headless.bench --sections knobs` (spheres, one knob at a time from the old Draft, glossy
 # FLIP against a 128 spp Cycles reference whose own noise floor there is 0.051): SGs at most 8 -> 16 was the best
@@ -104,8 +105,9 @@ class BakeSettings:
     def validate(self):
         checks = [
             (1e-5 <= self.texel_density <= 4096, f"texel density {self.texel_density} texels/m is outside 1e-5..4096"),
-            (8 <= self.lightfield_resolution <= 128,
-             f"light-field resolution {self.lightfield_resolution} is outside 8..128"),
+            (self.lightfield_resolution in LIGHTFIELD_RESOLUTIONS,
+             f"light-field resolution {self.lightfield_resolution} is not one of "
+             f"{', '.join(map(str, LIGHTFIELD_RESOLUTIONS))} (the SG encoder halves it down to 4 x 4)"),
             (1 <= self.samples <= 65536, f"samples {self.samples} is outside 1..65536"),
             (0 <= self.lightmap_samples <= 65536, f"lightmap samples {self.lightmap_samples} is outside 0 (= samples)"
                                                    "..65536"),

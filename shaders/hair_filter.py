@@ -21,11 +21,12 @@ except ImportError:
     from shaders.hair_raster import FEATURE_NAMES, StochasticRender
 
 MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
-SHIPPED_MODELS = {  # the 4-spp networks shipped in models/; docs/design-additions.md §22 measures both
-    "base": MODELS_DIR / "hair_base.onnx",  # 1.7 s at 1024^2, 4 passes
-    "large": MODELS_DIR / "hair_large.onnx",  # 5.3 s, 0.002 lower FLIP
+SHIPPED_MODELS = {  # the 4-spp networks shipped in models/; docs/design-additions.md §22 and §25 measure both
+    "base": MODELS_DIR / "hair_base.onnx",  # 0.6-0.8 s at 1024^2 with 4 passes on 2 cores
+    "large": MODELS_DIR / "hair_large.onnx",  # 1.4-1.5 s, FLIP 0.002-0.004 lower on every split
 }
-SHIPPED_MODEL = SHIPPED_MODELS["base"]
+DEFAULT_NETWORK = "large"  # the one that beats unfiltered 16 spp on FLIP beyond 2 standard errors (§25)
+SHIPPED_MODEL = SHIPPED_MODELS[DEFAULT_NETWORK]
 MIRRORS = {1: ((False, False),), 2: ((False, False), (True, False)),
            4: ((False, False), (True, False), (False, True), (True, True))}  # passes -> (left-right, up-down)
 DEFAULT_PASSES = 4
@@ -119,8 +120,10 @@ class HairFilter:
         return outputs, padded
 
 
-def load_filter(path=None, threads: int = 0, network: str = "base") -> HairFilter:
-    """An onnxruntime session for the model at `path`, or else for the shipped `network` (base or large)."""
+def load_filter(path=None, threads: int = 0, network: str | None = None) -> HairFilter:
+    """An onnxruntime session for the model at `path`, or else for the shipped `network` (base or large; None:
+    DEFAULT_NETWORK)."""
+    network = network or DEFAULT_NETWORK
     if not path and network not in SHIPPED_MODELS:
         raise HairFilterError(f"unknown hair filter network {network!r}; choose one of {', '.join(SHIPPED_MODELS)}")
     path = Path(path) if path else SHIPPED_MODELS[network]

@@ -324,7 +324,7 @@ def test_the_shipped_networks_are_4_spp_filters_with_their_reproduction_recipes(
     makefile = (REPO / "Makefile").read_text()
     assert f"--config {network}+blend " in recipe["command"]
     assert f"--config {network}+blend --flip-weight 0.3 --steps 21000 --out models/hair_{network}.onnx" in makefile
-    assert load_filter().path == SHIPPED_MODEL == SHIPPED_MODELS["base"]  # the default
+    assert load_filter().path == SHIPPED_MODEL == SHIPPED_MODELS["large"]  # the default
 
 
 def test_mirrored_input_keeps_tangents_along_the_strands_in_the_image():
@@ -438,12 +438,13 @@ def test_filter_hair_operator_on_the_hair_scene(tmp_path):
         assert pixels.shape == (75, 100, 3) and np.isfinite(pixels).all()
         summary = json.loads((tmp_path / "hair" / "hair_filter.json").read_text())
         assert summary["key_light"].startswith("Key") and any("stride" in w for w in summary["warnings"])
-        assert summary["filter_passes"] == 2 and summary["config"] == "base+blend"
+        assert summary["filter_passes"] == 2 and summary["config"] == "large+blend"  # the default network
+        assert summary["model"].endswith("hair_large.onnx")
         with active_scene(scene):
-            scene.sg_lightfield.hair_network = "LARGE"
+            scene.sg_lightfield.hair_network = "BASE"
             assert bpy.ops.sg_lightfield.filter_hair() == {"FINISHED"}
         summary = json.loads((tmp_path / "hair" / "hair_filter.json").read_text())
-        assert summary["config"] == "large+blend" and summary["model"].endswith("hair_large.onnx")
+        assert summary["config"] == "base+blend" and summary["model"].endswith("hair_base.onnx")
         empty = build_demo_scene("demo:spheres")
         with active_scene(empty):
             empty.sg_lightfield.hair_output_dir = str(tmp_path / "none")
@@ -463,7 +464,8 @@ def test_filter_hair_command_line_and_its_bad_input(tmp_path):
              "--background-samples", "2")
     assert ok.returncode == 0, ok.stderr
     assert (tmp_path / "ok" / "filtered.png").is_file() and (tmp_path / "ok" / "unfiltered.png").is_file()
-    assert json.loads((tmp_path / "ok" / "hair_filter.json").read_text())["filter_passes"] == 4  # the default
+    summary = json.loads((tmp_path / "ok" / "hair_filter.json").read_text())
+    assert summary["filter_passes"] == 4 and summary["config"] == "large+blend"  # the defaults
     no_hair = run("--scene", "demo:spheres", "--out", str(tmp_path / "x"))
     assert no_hair.returncode == 1 and no_hair.stderr.strip().splitlines()[-1].startswith("error: ")
     (tmp_path / "bad.onnx").write_text("not a model")
@@ -496,6 +498,28 @@ def test_random_views_are_drawn_again_until_strands_are_in_view():
     assert max(draws_seen) > 1
     with pytest.raises(ValueError, match="none of 1 random views"):
         hr.random_view(np.random.default_rng(int(np.argmax(draws_seen))), strands, 32, 2, tries=1, **options)
+
+
+def test_the_bench_scores_unseen_views_of_the_trained_styles_and_pairs_methods_per_view():
+    from blender_addon import hair
+    from headless import hair_dataset
+    from headless.bench_hair import paired_differences, unseen_view_jobs
+
+    unseen = unseen_view_jobs(9)
+    in_dataset = {(name, index) for name, index, _ in hair_dataset.dataset_jobs(hair_dataset.PAIRS,
+                                                                                hair_dataset.HELD_OUT)}
+    assert len(unseen) == 9 and not in_dataset & {(name, index) for name, index, _ in unseen}
+    assert all(name == "train" and index >= hair_dataset.PAIRS for name, index, _ in unseen)
+    styles = [style for *_, style in unseen]
+    assert sorted(set(styles)) == sorted(hair.TRAIN_STYLES) and hair.HELD_OUT_STYLE not in styles
+    assert all(styles.count(style) == 3 for style in hair.TRAIN_STYLES)
+    # FLIP lower and PSNR higher are "ours better"; the standard error is of the per-view differences.
+    scores = {"ours": {"flip": [0.10, 0.20, 0.30], "psnr": [30.0, 31.0, 29.0]},
+              "other": {"flip": [0.12, 0.21, 0.29], "psnr": [29.0, 29.0, 29.0]}}
+    row = paired_differences(scores, "ours", ("other", "absent"))["ours vs other"]
+    assert row["flip"]["mean_gain"] == pytest.approx(0.02 / 3, abs=1e-5) and row["flip"]["wins"] == 2
+    assert row["flip"]["standard_error"] == pytest.approx(np.std([0.02, 0.01, -0.01], ddof=1) / np.sqrt(3), abs=1e-5)
+    assert row["psnr"]["mean_gain"] == pytest.approx(1.0) and row["psnr"]["wins"] == 2
 
 
 @pytest.mark.slow

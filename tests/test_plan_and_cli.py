@@ -137,6 +137,7 @@ def test_zero_area_and_loose_vertices_are_skipped_with_a_warning():
 
 @pytest.mark.parametrize("overrides, message", [
     (dict(texel_density=1e9), "texel density"), (dict(lightfield_resolution=4), "resolution"),
+    (dict(lightfield_resolution=72), "light-field resolution 72 is not one of 8, 16, 32, 64, 128"),
     (dict(samples=0), "samples"), (dict(sg_count=999), "SG count"), (dict(device="tpu"), "device"),
     (dict(lobe_refit_steps=-1), "lobe refit steps"), (dict(rough_materials="ignore"), "rough materials"),
     (dict(lightmap_samples=-4), "lightmap samples"), (dict(lightmap_samples=10**6), "lightmap samples")])
@@ -187,6 +188,7 @@ def test_cli_production_plan_gives_16_sgs_everywhere_and_the_floor_its_lightmap_
     (["--blend", "/nonexistent/scene.blend"], "scene.blend: .blend file not found"),
     (["--scene", "demo:nope"], "unknown demo scene"),
     (["--scene", "demo:spheres", "--reference-samples", "1"], "--reference-samples 1 is outside 2..65536"),
+    (["--scene", "demo:spheres", "--lightfield-resolution", "48"], "light-field resolution 48 is not one of"),
 ])
 def test_cli_bad_input_is_one_line_and_nonzero(tmp_path, args, message):
     out = _bake(*args, "--out", str(tmp_path / "o"))
