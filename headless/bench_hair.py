@@ -252,8 +252,8 @@ UNSEEN_VIEWS = 48  # the full bench's views past the dataset: with the 24 valida
 def bench_hair(out_root: Path, quick: bool = False, candidates: dict | None = None,
                unseen_views: int | None = None) -> dict:
     """The default shipped network is "ours 4 spp"; the other shipped ones are scored as candidates beside it
-    under their names. unseen_views:
-    None for UNSEEN_VIEWS (0 when quick)."""
+    under their names. unseen_views: views of the trained styles past the dataset's (None: UNSEEN_VIEWS, 0 when
+    quick)."""
     models = shipped_models()
     candidates = dict(candidates or {})
     for network, path in SHIPPED_MODELS.items():

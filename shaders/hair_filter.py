@@ -25,7 +25,7 @@ SHIPPED_MODELS = {  # the 4-spp networks shipped in models/; docs/design-additio
     "base": MODELS_DIR / "hair_base.onnx",  # 0.6-0.8 s at 1024^2 with 4 passes on 2 cores
     "large": MODELS_DIR / "hair_large.onnx",  # 1.4-1.5 s, FLIP 0.002-0.004 lower on every split
 }
-DEFAULT_NETWORK = "large"  # the one that beats unfiltered 16 spp on FLIP beyond 2 standard errors (§25)
+DEFAULT_NETWORK = "large"  # beats unfiltered 16 spp on the trained styles' FLIP by 2.6 standard errors (§25)
 SHIPPED_MODEL = SHIPPED_MODELS[DEFAULT_NETWORK]
 MIRRORS = {1: ((False, False),), 2: ((False, False), (True, False)),
            4: ((False, False), (True, False), (False, True), (True, True))}  # passes -> (left-right, up-down)
