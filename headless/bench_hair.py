@@ -133,11 +133,9 @@ UNSEEN_SPLIT, POOLED_SPLIT = "unseen views (trained styles)", "trained styles, v
 
 def unseen_view_jobs(count: int) -> list[tuple[str, int, str]]:
     """Views of the trained styles past the dataset's indices: drawn like its pairs, never rendered into it."""
-    from blender_addon import hair
     from headless import hair_dataset
 
-    first = hair_dataset.PAIRS
-    return [("train", i, hair.TRAIN_STYLES[i % len(hair.TRAIN_STYLES)]) for i in range(first, first + count)]
+    return hair_dataset.dataset_jobs(hair_dataset.PAIRS + count, 0)[hair_dataset.PAIRS:]
 
 
 def bench_quality(models: dict, out_root: Path, max_pairs: int = 40, pictures: int = 3,
