@@ -215,11 +215,12 @@ def train_stage(out_dir, plan: BakePlan, *, progress=None, should_cancel=lambda:
 
 
 def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budget_s: float | None = None,
-                encoder: str = "cnn"):
+                encoder: str = "cnn", seed: int = 0):
     """The train stage as a generator: yields (fraction, message) after every epoch, returns TrainResult.
     Closing it early saves the checkpoint, so the next run continues the same curve. The benchmark's baselines
     at equal bytes: encoder 'fixed_sg' swaps in fixed-axis SG12 (written as the same SG textures), 'sh_l2' L2
-    SH by least squares (an SH texture that apply shades through the SH variant of the node group)."""
+    SH by least squares (an SH texture that apply shades through the SH variant of the node group). `seed` picks
+    the CNN's initial weights and batch order (its own checkpoint): the benchmark's spread between trainings."""
     import torch
 
     from training.baselines import bytes_per_texel_fixed_sg, bytes_per_texel_sh_l2, eval_sh, fit_fixed_sg, fit_sh_l2
@@ -270,10 +271,12 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
             counts = texel_lobe_counts(atlas, texel_info, texels, plan, sg_count)
             data = LightFieldData.from_numpy(images, normals, device=device,
                                              lobe_counts=None if counts.min() == sg_count else counts)
-            config = TrainConfig(sg_count=sg_count, time_budget_s=budget / len(kinds), device=device)
-            # Keyed by the rendered data and the SG counts, not the budget: a larger budget continues the same curve.
+            config = TrainConfig(sg_count=sg_count, time_budget_s=budget / len(kinds), device=device, seed=seed)
+            # Keyed by the rendered data, the SG counts and the seed, not the budget: a larger budget continues the
+            # same curve.
             counts_key = hashlib.sha256(counts.tobytes()).hexdigest()[:8]
-            checkpoint = out_dir / "train" / f"{kind}_{plan.stage_hash('render')}_n{sg_count}_{counts_key}.pt"
+            checkpoint = out_dir / "train" / (f"{kind}_{plan.stage_hash('render')}_n{sg_count}_{counts_key}"
+                                              f"{f'_seed{seed}' if seed else ''}.pt")
             trainer = Trainer(data, config, checkpoint=checkpoint)
             lobe_steps = settings.lobe_refit_steps if kind == "lightfield" else 0
             shares = PROGRESS_SHARES_WITH_LOBE_REFIT if lobe_steps else PROGRESS_SHARES
@@ -391,7 +394,8 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
                 prediction = reconstruct(*midpoint_parameters(axis, sharpness, amplitude, a, b), images.shape[1])
             metrics["midpoint"] = error_metrics(prediction, held_out, unit_midpoint(normals[a], normals[b]))
         path = sg_texture_path(out_dir, kind)
-        metadata = {"plan_hash": plan_hash, "kind": kind, "epochs": epochs, "encoder": encoder}
+        metadata = {"plan_hash": plan_hash, "kind": kind, "epochs": epochs, "encoder": encoder,
+                    **({"seed": seed} if encoder == "cnn" and seed else {})}
         if encoder == "sh_l2":
             write_sh_texture(path, texels, coefficients, atlas.shape[:2], metadata)
         else:
