@@ -242,11 +242,22 @@ def reference_samples_for(settings) -> int:
     return max(REFERENCE_SAMPLES_MIN, 2 * settings.samples)
 
 
+def _reference_key(camera, resolution, reference_samples) -> tuple:
+    """What a view's reference depends on besides the scene itself: the camera's placement and lens, the image size
+    and the samples."""
+    placement = tuple(round(v, 6) for row in camera.matrix_world for v in row)
+    return placement, round(camera.data.lens, 6), round(camera.data.sensor_width, 6), tuple(resolution), \
+        int(reference_samples)
+
+
 def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144), reference_samples: int = 128,
-                   test_samples: int | None = None, with_eevee: bool = True) -> dict:
+                   test_samples: int | None = None, with_eevee: bool = True,
+                   reference_cache: dict | None = None) -> dict:
     """test_samples defaults to reference_samples: surfaces the bake does not replace (emitters, rough materials
     left to the renderer) are still path traced in the test render, and must be as converged as in the reference
-    to compare fairly."""
+    to compare fairly. reference_cache: a dict the caller keeps between evaluations of bakes of one unchanged
+    scene (the bench's trainings of one encoder); each view's two reference halves and surface images are
+    rendered once per camera placement, image size and samples and reused from it."""
     test_samples = test_samples or reference_samples
     start = time.perf_counter()
     out_dir = Path(out_dir)
@@ -270,13 +281,20 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144
               compute_device(scene, "cuda") if plan.settings.device == "cuda" else contextlib.nullcontext()):
             for k, (camera, _) in enumerate(cameras):
                 ours = _render(scene, camera, Path(tmp) / "ours.exr", test_samples, 0)
-                undo = _swap_to_originals(scene)
-                try:
-                    half_a = _render(scene, camera, Path(tmp) / "a.exr", reference_samples // 2, 1)
-                    half_b = _render(scene, camera, Path(tmp) / "b.exr", reference_samples // 2, 2)
-                finally:
-                    for slot, material in reversed(undo):  # reversed: instances may share one slot
-                        slot.material = material
+                key = _reference_key(camera, resolution, reference_samples)
+                if reference_cache is not None and key in reference_cache:
+                    half_a, half_b, (roughness, materials, material_names) = reference_cache[key]
+                else:
+                    undo = _swap_to_originals(scene)
+                    try:
+                        half_a = _render(scene, camera, Path(tmp) / "a.exr", reference_samples // 2, 1)
+                        half_b = _render(scene, camera, Path(tmp) / "b.exr", reference_samples // 2, 2)
+                    finally:
+                        for slot, material in reversed(undo):  # reversed: instances may share one slot
+                            slot.material = material
+                    roughness, materials, material_names = surface_images(scene, camera, Path(tmp) / "surface.exr")
+                    if reference_cache is not None:
+                        reference_cache[key] = (half_a, half_b, (roughness, materials, material_names))
                 reference = 0.5 * (half_a + half_b)
                 references.append(reference)
                 tests.append(ours)
@@ -284,7 +302,6 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144
                 mean_flip, flip_map = flip(ref_ldr, ours_ldr)
                 flip_maps.append(flip_map)
                 squared_maps.append(((ref_ldr - ours_ldr) ** 2).mean(axis=-1))
-                roughness, materials, material_names = surface_images(scene, camera, Path(tmp) / "surface.exr")
                 roughness_maps.append(roughness)
                 material_maps.append(materials)
                 half_a_ldr, half_b_ldr = tonemap(half_a), tonemap(half_b)

@@ -551,13 +551,14 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 32,
         normals = channels(atlas, "Ng.X", 3)[texels[:, 0], texels[:, 1]].astype(np.float64)
         roughness = texel_roughness(atlas, texel_info, texels, plan)
         r, c = texels[:, 0], texels[:, 1]
-        trainings = []
+        trainings, references = [], {}  # each training is scored against the same path-traced references
         for seed in range(seeds if encoder == "cnn" else 1):  # the baselines are least squares: one answer
             start = time.perf_counter()
             trained = train_stage(out, plan, encoder=encoder, seed=seed)
             apply_stage(scene, plan, out)
             bake_s = render_s + time.perf_counter() - start
-            errors = evaluate_stage(scene, plan, out, views=2, with_eevee=False, reference_samples=reference_samples)
+            errors = evaluate_stage(scene, plan, out, views=2, with_eevee=False, reference_samples=reference_samples,
+                                    reference_cache=references)
             classes = errors["flip_by_roughness"]
             split = None  # the SH baseline has no SGs to split; the free SGs' split is seed 0's
             if encoder == "sh_l2":
