@@ -44,8 +44,8 @@ class SGLightfieldSettings(bpy.types.PropertyGroup):
                                      default=300.0, min=1.0, subtype="TIME_ABSOLUTE", unit="TIME_ABSOLUTE")
     lobe_refit_steps: IntProperty(name="Lobe Refit Steps",
                                   description="Steps refitting the SGs' axes, sharpness and amplitudes through the "
-                                  "glossy shading after training (0: off; Production uses 150)",
-                                  default=0, min=0, soft_max=1000, max=100000)
+                                  "glossy shading after training (0: off; every preset uses 150)",
+                                  default=150, min=0, soft_max=1000, max=100000)
     rough_materials: EnumProperty(
         name="Rough Materials", default="IRRADIANCE",
         description="Dielectrics of roughness 0.6 and above: what lights them in the baked scene",

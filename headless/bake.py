@@ -49,7 +49,7 @@ def parse_args(args: list[str]) -> argparse.Namespace:
                    "--no-uniform-sg-count: each the fewest its roughness needs)")
     p.add_argument("--training-budget", type=float, dest="training_budget_s")
     p.add_argument("--lobe-refit-steps", type=int, help="Adam steps refitting the SGs' axes, sharpness and "
-                   "amplitudes through the glossy shading after training (0: off; Production: 150)")
+                   "amplitudes through the glossy shading after training (0: off; every preset: 150)")
     p.add_argument("--rough-materials", choices=ROUGH_MATERIALS, default="irradiance",
                    help="dielectrics of roughness >= 0.6: an irradiance lightmap from the same light field, or the "
                    "renderer's own lighting")

@@ -26,8 +26,8 @@ writes them to bench_out/bench.json.
   encoders  free SGs against fixed SG12 and L2 SH (each baked, applied, evaluated) at equal bytes per texel, on spheres:
             RMSE and FLIP on glossy pixels (and per roughness class; RMSE also against the converged image),
             reflected-radiance error of each sphere's texels at its roughness, split into the SGs' fit and the
-            closed form's error. R = 32 with Production's lobe refit unless --encoder-* say otherwise; the CNN
-            trained 3 times (seeds; --quick: once) and averaged. Target: >= 2x lower RMSE.
+            closed form's error. R = 32 (Production's) with the presets' lobe refit unless --encoder-* say
+            otherwise; the CNN trained 3 times (seeds; --quick: once) and averaged. Target: >= 2x lower RMSE.
   stability the numerical-stability sweep: `spheres` at roughness 0 and 1, a 1e5 emitter, no light, scale 1e4 and
             1e-3, each baked and evaluated: every output finite, and the errors.
   hair      the hair filter (headless/bench_hair.py): onnxruntime time at 1024^2, PSNR/FLIP against Cycles
@@ -45,7 +45,7 @@ if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from shaders.bake_plan import (  # noqa: E402
-    LIGHTFIELD_RESOLUTIONS, LOBE_REFIT_STEPS_PRODUCTION, PRESETS, BakeSettings, write_json_atomic)
+    LIGHTFIELD_RESOLUTIONS, LOBE_REFIT_STEPS, PRESETS, BakeSettings, write_json_atomic)
 
 CAPTURE_TARGET_S = 10.0
 SECTIONS = ("capture", "render", "train", "sgcount", "encoders", "knobs", "apply", "presets", "stability", "hair")
@@ -492,7 +492,7 @@ def _mean_value(by_key: dict) -> float:
 
 def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 32, samples: int = 32,
                    reference_samples: int = 128, texel_density: float = 4.0,
-                   lobe_refit_steps: int = LOBE_REFIT_STEPS_PRODUCTION, seeds: int = 3) -> list[dict]:
+                   lobe_refit_steps: int = LOBE_REFIT_STEPS, seeds: int = 3) -> list[dict]:
     """The free SGs against the production lightmappers' encodings at equal bytes per texel, on `spheres`: CNN with
     5 SGs (70 B) against fixed SG12 by NNLS (72 B), and CNN with 4 SGs (56 B) against L2 SH (54 B, shaded by the
     SH variant of the node group); each baked, applied and evaluated against Cycles (RMSE and FLIP on glossy
@@ -500,7 +500,7 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 32,
     roughness, against the rendered light fields; the floor is an irradiance lightmap and has no SGs), and for the
     SG encoders that error split into the SGs' fit and the node group's closed form (encoding_error_split). The
     light fields are Production's resolution (R = 32) at Draft's density (4 texels per metre) and 32 spp, and the
-    free SGs get Production's lobe refit (lobe_refit_steps; it reaches roughness >= lobe_refit_min_roughness(R):
+    free SGs get the presets' lobe refit (lobe_refit_steps; it reaches roughness >= lobe_refit_min_roughness(R):
     0.29 at R = 32, 0.41 at R = 16); the baselines' fixed lobes have nothing to refit. The CNN is trained `seeds`
     times on the same light fields (seeds 0, 1, ...): one training's glossy RMSE varies by up to 30 % with its
     initial weights (docs/design-additions.md §26), so a free encoder's row holds the mean over its trainings and
@@ -808,9 +808,9 @@ def main(argv=None) -> int:
     p.add_argument("--encoder-training-budget", type=float, metavar="SECONDS",
                    help="encoders section: the CNN's seconds per free-SG bake (default 60, 30 with --quick, times the "
                    "texel count's growth with --encoder-density)")
-    p.add_argument("--encoder-lobe-refit-steps", type=int, default=LOBE_REFIT_STEPS_PRODUCTION, metavar="STEPS",
-                   help=f"encoders section: the free SGs' lobe refit (default {LOBE_REFIT_STEPS_PRODUCTION}, "
-                   "Production's; 0: off)")
+    p.add_argument("--encoder-lobe-refit-steps", type=int, default=LOBE_REFIT_STEPS, metavar="STEPS",
+                   help=f"encoders section: the free SGs' lobe refit (default {LOBE_REFIT_STEPS}, "
+                   "the presets'; 0: off)")
     p.add_argument("--encoder-trainings", type=int, metavar="N",
                    help="encoders section: CNN trainings (seeds) per free-SG bake, averaged (default 3, 1 with "
                    "--quick)")
