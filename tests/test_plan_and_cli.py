@@ -197,6 +197,21 @@ def test_cli_bad_input_is_one_line_and_nonzero(tmp_path, args, message):
     assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0]
 
 
+@pytest.mark.parametrize("args, message", [
+    (["--encoder-resolution", "48"], "light-field resolution 48 is not one of"),
+    (["--encoder-training-budget", "0"], "training budget 0.0 s is outside"),
+    (["--encoder-lobe-refit-steps", "-1"], "lobe refit steps -1 is outside"),
+    (["--encoder-trainings", "17"], "--encoder-trainings takes 1 to 16"),
+])
+def test_bench_checks_the_encoder_settings_before_any_work(tmp_path, capsys, args, message):
+    from headless.bench import main
+
+    with pytest.raises(SystemExit) as stopped:
+        main(["--out", str(tmp_path / "bench"), "--sections", "encoders", *args])
+    assert stopped.value.code == 2 and message in capsys.readouterr().err
+    assert not (tmp_path / "bench").exists()  # stopped before it made its output directory
+
+
 def test_cli_device_cuda_without_an_optix_gpu_stops_with_one_error_line(tmp_path):
     from blender_addon.render import optix_devices
 
