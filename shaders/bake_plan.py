@@ -33,10 +33,10 @@ LIGHTFIELD_RESOLUTIONS = (8, 16, 32, 64, 128)  # powers of two: training/sg_fit.
 # 0.014), and 15 s of training matched 60 s on 16 spp data (0.113 vs 0.120: longer fits the noise). Production keeps
 # R = 32 and density 16 for scenes with finer lighting than spheres; on this 2-core CPU it is a long job (spheres:
 # render ~40 min), on a GPU or a farm (--tile i/N) minutes.
-# Adam steps of training/glossy_lobe_fit.py, in every preset. It reaches roughness >= 0.41 at R = 16 (Draft,
-# Preview) and >= 0.29 at R = 32. Spheres, the same CNN with and without it, FLIP of the roughness-0.5 sphere:
-# Draft 0.102 -> 0.070 (+10 s), Preview 0.082 -> 0.066 (+30 s); 75 steps gave 0.076 and 0.071
-# (docs/design-additions.md section 27).
+# Adam steps of training/glossy_lobe_fit.py, in every preset. Spheres, the same CNN with and without it, FLIP of
+# the roughness-0.5 sphere: Draft 0.102 -> 0.070 (+10 s), Preview 0.082 -> 0.066 (+30 s); 75 steps gave 0.076 and
+# 0.071 (docs/design-additions.md section 27). It reaches roughness >= 0.41 at R = 16 (Draft, Preview) and >= 0.29
+# at R = 32; the amplitude refit >= 0.28 and >= 0.2.
 LOBE_REFIT_STEPS = 150
 # Production gives every glossy material 16 SGs: on the Production spheres (same light fields) the per-material
 # rule's 8 at roughness 0.4 / 0.5 cost FLIP 0.086 / 0.049 against 0.067 / 0.042 with 16 (section 23).

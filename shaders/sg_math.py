@@ -206,6 +206,17 @@ def ggx_ndf(ndoth, alpha):
 
 def ggx_brdf_cos(light, view, normal, roughness, f0):
     """Reference integrand f(l, v) (n.l)_+ for GGX with Schlick Fresnel and height-correlated Smith."""
+    white, vdoth = _ggx_white_integrand_and_vdoth(light, view, normal, roughness)
+    return fresnel_schlick(f0, vdoth) * white[..., None]
+
+
+def ggx_brdf_cos_white(light, view, normal, roughness):
+    """ggx_brdf_cos with F0 = 1 (Schlick's Fresnel is then 1), without the colour axis: the refits' integrand."""
+    return _ggx_white_integrand_and_vdoth(light, view, normal, roughness)[0]
+
+
+def _ggx_white_integrand_and_vdoth(light, view, normal, roughness):
+    """(D G / (4 n.v) where n.l > 0, else 0; and v.h for the Fresnel term)."""
     alpha = ggx_alpha(roughness)
     light, view, normal = np.asarray(light), np.asarray(view), np.asarray(normal)
     ndotl, ndotv_signed, vdotv = dot(normal, light), dot(normal, view), dot(view, view)
@@ -218,8 +229,7 @@ def ggx_brdf_cos(light, view, normal, roughness, f0):
     vdoth = np.where(degenerate, view[..., 2], (ldotv + vdotv) / length)
     d = ggx_ndf(ndoth, alpha)
     g = smith_g2_ggx(np.maximum(ndotl, NDOTV_MIN), ndotv, alpha)
-    f = fresnel_schlick(f0, vdoth)
-    return np.where((ndotl > 0)[..., None], f * (d * g / (4 * ndotv))[..., None], 0.0)
+    return np.where(ndotl > 0, d * g / (4 * ndotv), 0.0), vdoth
 
 
 def sg_glossy_mirror_warp(axis, sharpness, amplitude, normal, view, roughness, f0):

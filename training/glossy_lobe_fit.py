@@ -27,7 +27,7 @@ LOBE_REFIT_RATE = 0.02  # Adam's step on unit-axis components, log sharpness and
 LOBE_REFIT_SMOOTHNESS = 0.2  # weight of the neighbours' differing changes (1.0 held the fit back: 0.116 vs 0.100)
 LOBE_REFIT_BATCH = 128  # texels per forward and backward pass (memory: ~0.3 GB at 16 SGs)
 AMPLITUDE_FLOOR = 1e-3  # of a texel's largest amplitude: log amplitudes start at least here
-LOBE_REFIT_LOBE_PIXELS = 0.75  # light-field pixels the GGX lobe must span (the amplitude refit needs 0.5)
+LOBE_REFIT_LOBE_PIXELS = 0.75  # light-field pixels the GGX lobe must span (the amplitude refit's: 0.36)
 # The lobe refit is kept unless it raises the error between texels more than this factor: that error is against
 # the light field, which the path-traced reference does not follow where lobes span a pixel or two (docstring below).
 LOBE_REFIT_GUARD_TOLERANCE = 1.15
@@ -35,10 +35,13 @@ LOBE_REFIT_GUARD_TOLERANCE = 1.15
 
 def lobe_refit_min_roughness(resolution: int) -> float:
     """The least roughness the lobe refit is used at: 0.29 at R = 32, 0.41 at R = 16. Production spheres, R = 32,
-    16 SGs, the same CNN; FLIP against 512-spp Cycles, and the guard's error between texels (light-field target):
-    roughness 0.3 (a 0.81-pixel lobe) FLIP 0.067 -> 0.056 while that error rose 0.343 -> 0.372; 0.4 (1.45 pixels)
-    0.061 -> 0.048, error 0.122 -> 0.118; 0.5 (2.3 pixels) error 0.086 -> 0.063. So a small rise of that error
-    does not mean a worse bake (LOBE_REFIT_GUARD_TOLERANCE); a blow-up still does."""
+    16 SGs, the same CNN; FLIP against 512-spp Cycles, and the guard's error between texels (light-field target,
+    pixel centres then): roughness 0.3 (a 0.81-pixel lobe) FLIP 0.067 -> 0.056 while that error rose 0.343 ->
+    0.372; 0.4 (1.45 pixels) 0.061 -> 0.048, error 0.122 -> 0.118; 0.5 (2.3 pixels) error 0.086 -> 0.063. So a
+    small rise of that error does not mean a worse bake (LOBE_REFIT_GUARD_TOLERANCE); a blow-up still does.
+    With the pixel-integrated target it could go as low as the amplitude refit (0.36 pixels): measured, it lowered
+    FLIP at 0.2-0.4 but took 126 ms per texel at 16 SGs, courtyard's Draft bake 70 -> 394 s for 0.047 -> 0.046
+    (docs/design-additions.md §28)."""
     return refit_min_roughness(resolution, LOBE_REFIT_LOBE_PIXELS)
 
 

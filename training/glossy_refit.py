@@ -8,21 +8,21 @@ texel minimise, per colour channel,
     sum_v | sum_k a_k glossy_k(v) - integral L(l) f(l, v) (n.l) dl |^2  +  ridge sum_k W_k (a_k - a_cnn,k)^2
 
 over REFIT_VIEW_COSINES x REFIT_VIEW_AZIMUTHS view directions on the texel's hemisphere: glossy_k the closed form of
-SG k with unit amplitude, f the exact GGX BRDF of the texel's roughness (Schlick Fresnel with F0 = 1: the
-material's colour scales both sides alike), L the rendered light field (quadrature at pixel centres), W_k SG k's
-own weight D_kk, at least REFIT_RIDGE_FLOOR of the texel's largest (a lobe below the horizon, which the views
-hardly see, went from 1 to 1317 on the demo spheres without that floor). The closed form's own errors (its Laplace
-approximation, the horizon) are fitted away with the light field's. The ridge keeps amplitudes near the CNN's
-where the views cannot tell lobes apart: without it, or with few views, lobes seen only at untried views blow up
-(measured on held-out views: error 40x at roughness 0.2).
+SG k with unit amplitude, f the exact GGX BRDF of the texel's roughness (Schlick Fresnel with F0 = 1: the material's
+colour scales both sides alike), L the rendered light field (each pixel constant over its solid angle:
+pixel_integrated_weights), W_k SG k's own weight D_kk, at least REFIT_RIDGE_FLOOR of the texel's largest (a lobe
+below the horizon, which the views hardly see, went from 1 to 1317 on the demo spheres without that floor). The
+closed form's own errors (its Laplace approximation, the horizon) are fitted away with the light field's. The ridge
+keeps amplitudes near the CNN's where the views cannot tell lobes apart: without it, or with few views, lobes seen
+only at untried views blow up (measured on held-out views: error 40x at roughness 0.2).
 """
 from __future__ import annotations
 
 import numpy as np
 
 from shaders.octahedral import pixel_directions, pixel_solid_angles
-from shaders.sg_math import (ggx_brdf_cos, midpoint_parameters, orthonormal_tangents, sg_glossy, sg_sum_eval,
-                             unit_midpoint)
+from shaders.sg_math import (ggx_alpha, ggx_brdf_cos, ggx_brdf_cos_white, midpoint_parameters, orthonormal_tangents,
+                             sg_glossy, sg_sum_eval, unit_midpoint)
 
 REFIT_VIEW_COSINES = tuple(np.linspace(0.1, 1.0, 10))  # n.v of the fitted views
 REFIT_VIEW_AZIMUTHS = 12
@@ -33,17 +33,18 @@ REFIT_RIDGE_FLOOR = 0.01  # the pull is at least this share of the texel's large
 REFIT_SWEEPS = 200  # projected coordinate-descent sweeps, warm-started from the CNN's amplitudes
 REFIT_BATCH = 32  # texels per vectorised step
 ENCODING_SPLIT_BATCH = 8  # texels per step of encoding_error_split (memory: V x (8 R)^2 per texel)
-REFIT_LOBE_PIXELS = 0.5  # refit only where the GGX lobe spans at least this many light-field pixels
+REFIT_LOBE_PIXELS = 0.36  # refit only where the GGX lobe spans at least this many light-field pixels
 ERROR_TEXELS_PER_MATERIAL = 128  # texels (evenly picked) the reported error of a material uses
 UNIT_F0 = np.ones(1)
 
 
 def refit_min_roughness(resolution: int, lobe_pixels: float = REFIT_LOBE_PIXELS) -> float:
-    """The least roughness the refit is used at: the GGX lobe (about alpha = roughness^2 radians wide) spans
-    REFIT_LOBE_PIXELS light-field pixels (about sqrt(4 pi) / R radians). Sharper lobes fall between the
-    quadrature's pixel centres. This gives 0.24 at R = 32, 0.33 at R = 16. Near the bound the target still aliases
-    (Production spheres, R = 32: held-out error at roughness 0.3 rose 0.29 -> 0.34, and 0.2 got worse too), so the
-    train stage keeps a material's refit only where it lowers the held-out error."""
+    """The least roughness the amplitude refit is used at: the GGX lobe (about alpha = roughness^2 radians wide)
+    spans REFIT_LOBE_PIXELS light-field pixels (about sqrt(4 pi) / R radians). This gives 0.2 at R = 32, 0.28 at
+    R = 16; sharper lobes see one pixel's constant radiance for most of what they reflect. With pixel-centre
+    quadrature the bound had to be 0.5 pixels (0.24 at R = 32) and the target still aliased near it; the
+    pixel-integrated target let it come down (docs/design-additions.md §28). The train stage keeps a material's
+    refit only where it lowers the held-out error."""
     return float(np.sqrt(lobe_pixels * np.sqrt(4 * np.pi) / resolution))
 
 
@@ -62,10 +63,69 @@ def hemisphere_views(normals: np.ndarray, cosines=REFIT_VIEW_COSINES, azimuths: 
 
 def reflected_radiance(images: np.ndarray, normals: np.ndarray, views: np.ndarray, roughness: np.ndarray) -> np.ndarray:
     """(T, V, C) radiance each texel's GGX surface (F0 = 1) reflects towards `views` (T, V, 3) from its rendered
-    light field (T, R, R, C): the exact BRDF summed over the pixels' centres times their solid angles."""
+    light field (T, R, R, C), each pixel's radiance constant over its solid angle (pixel_integrated_weights)."""
     t, resolution, _, channels = images.shape
-    return reflected_radiance_of_pixels(np.asarray(images, np.float64).reshape(t, -1, channels), normals, views,
-                                        roughness, resolution)
+    weights = pixel_integrated_weights(normals, views, roughness, resolution)
+    return np.einsum("tvp,tpc->tvc", weights, np.asarray(images, np.float64).reshape(t, -1, channels))
+
+
+LOBE_FINE_PIXELS = 2.0  # fine pixels across the GGX lobe in pixel_integrated_weights
+MAX_SUPERSAMPLING = 8  # fine pixels per light-field pixel side, at most
+WINDOW_PIXELS = 2.0  # light-field pixels (and lobe widths) about the mirror direction that are integrated finely
+WINDOW_BATCH = 1 << 22  # fine directions per step of the window's integration (memory: a few hundred MB)
+
+
+def lobe_width_in_pixels(roughness, resolution: int) -> np.ndarray:
+    """Width of the GGX lobe (about alpha = roughness^2 radians) in light-field pixels (about sqrt(4 pi) / R)."""
+    return np.asarray(ggx_alpha(np.asarray(roughness, np.float64))) * resolution / np.sqrt(4 * np.pi)
+
+
+def lobe_supersampling(roughness, resolution: int) -> np.ndarray:
+    """Fine pixels per light-field pixel side that put LOBE_FINE_PIXELS across the lobe: 1 where it already spans
+    that many, up to MAX_SUPERSAMPLING."""
+    wanted = np.ceil(LOBE_FINE_PIXELS / np.maximum(lobe_width_in_pixels(roughness, resolution), 1e-6))
+    return np.clip(wanted, 1, MAX_SUPERSAMPLING).astype(np.int64)
+
+
+def pixel_integrated_weights(normals: np.ndarray, views: np.ndarray, roughness: np.ndarray,
+                             resolution: int) -> np.ndarray:
+    """(T, V, R^2) weights w with sum_p w_p L_p the GGX reflection (F0 = 1) towards each view of a light field
+    constant over each pixel: w_p the BRDF times n.l integrated over pixel p. Pixel-centre quadrature aliases once
+    the lobe spans a pixel or two (the refits then fit where the centres happen to fall), so pixels within
+    WINDOW_PIXELS pixels and lobe widths of the mirror direction are integrated on a grid lobe_supersampling times
+    finer; beyond, the BRDF's tail is smooth over a pixel and its centre is used (the window changes the weights
+    by ~2e-3 of their sum, tests/test_glossy_refit.py). In float32, twice as fast: its rounding is far below the
+    quadrature's error."""
+    dtype = np.float32
+    normals, views = np.asarray(normals, dtype), np.asarray(views, dtype)
+    t = len(views)
+    rough = np.broadcast_to(np.asarray(roughness, dtype), (t,))
+    directions = pixel_directions(resolution, dtype).reshape(-1, 3)
+    solid_angles = pixel_solid_angles(resolution).reshape(-1)
+    weights = ggx_brdf_cos_white(directions[None, None], views[:, :, None], normals[:, None, None],
+                                 rough[:, None, None]) * solid_angles.astype(dtype)
+    supersampling = lobe_supersampling(rough, resolution)
+    if supersampling.max() == 1:
+        return weights
+    pixel_angle = np.sqrt(solid_angles.max())
+    mirror = 2 * np.einsum("tk,tvk->tv", normals, views)[..., None] * normals[:, None] - views
+    reach = WINDOW_PIXELS * (pixel_angle + 2 * ggx_alpha(rough.astype(np.float64)))  # reflected lobe: ~2 alpha
+    window = np.cos(np.minimum(reach, np.pi))
+    for factor in np.unique(supersampling[supersampling > 1]):
+        texels = np.flatnonzero(supersampling == factor)
+        fine = pixel_directions(resolution * factor, dtype).reshape(resolution, factor, resolution, factor, 3)
+        fine = fine.transpose(0, 2, 1, 3, 4).reshape(-1, factor * factor, 3)
+        fine_angles = pixel_solid_angles(resolution * factor).reshape(resolution, factor, resolution, factor)
+        fine_angles = fine_angles.transpose(0, 2, 1, 3).reshape(-1, factor * factor).astype(dtype)
+        near = np.einsum("pk,tvk->tvp", directions, mirror[texels]) >= window[texels, None, None]
+        tt, vv, pp = np.nonzero(near)
+        tt = texels[tt]
+        step = max(WINDOW_BATCH // (factor * factor), 1)
+        for s in range(0, len(tt), step):
+            i, v, p = tt[s:s + step], vv[s:s + step], pp[s:s + step]
+            fine_weights = ggx_brdf_cos_white(fine[p], views[i, v][:, None], normals[i][:, None], rough[i][:, None])
+            weights[i, v, p] = (fine_weights * fine_angles[p]).sum(axis=1)
+    return weights
 
 
 def reflected_radiance_of_pixels(radiance: np.ndarray, normals: np.ndarray, views: np.ndarray, roughness: np.ndarray,
@@ -88,8 +148,8 @@ def encoding_error_split(images, normals, axis, sharpness, amplitude, roughness,
     the exact GGX reflection of the light field, each light-field pixel constant over its solid angle):
       fit          the SGs themselves, reflected exactly (quadrature on a grid `supersampling` times finer);
       closed_form  the node group's closed form against that exact reflection of the same SGs;
-      total        the closed form against the light field's reflection (what shaded_error measures, with
-                   pixel-integrated quadrature instead of pixel centres).
+      total        the closed form against the light field's reflection (what shaded_error measures, on the
+                   whole sphere's fine grid instead of pixel_integrated_weights' window).
     The fit and closed-form parts add up to at most the total's error (triangle inequality), not exactly."""
     t, resolution, _, channels = images.shape
     fine = resolution * supersampling

@@ -88,8 +88,8 @@ def texel_lobe_counts(atlas, texel_info: dict, texels: np.ndarray, plan: BakePla
 
 
 def _error_members(atlas, texel_info: dict, texels, roughness, resolution: int, only=None):
-    """Material name -> indices of its texels rough enough for the quadrature (glossy_refit.refit_min_roughness:
-    sharper lobes fall between its pixel centres); of the materials named in `only` if given."""
+    """Material name -> indices of its texels rough enough for the refits (glossy_refit.refit_min_roughness:
+    sharper lobes see one pixel's constant radiance); of the materials named in `only` if given."""
     from training.glossy_refit import refit_min_roughness
 
     material_ids = texel_material_ids(atlas, texels)
@@ -142,9 +142,9 @@ def keep_refit_where_better(trained: tuple, refitted: tuple, before: dict, after
     """Per material, the refitted values where they lower the held-out glossy error (`before` and `after` map
     material name -> error; with a tolerance > 1, where they raise it less than that factor), the trained ones
     elsewhere: (values, [materials kept], {material: error the refit had}); values are tuples of (T, ...) arrays.
-    Where the GGX lobe is barely wider than a light-field pixel, the quadrature's target aliases and the refit can
-    fit that (measured on the Production spheres, R = 32: roughness 0.3 went 0.29 -> 0.34 on held-out views, FLIP
-    0.077 -> 0.092)."""
+    Where the GGX lobe is about a light-field pixel wide, a refit can fit the target's flaws (with the pixel-centre
+    target it had before stop 42, Production spheres, R = 32: roughness 0.3 went 0.29 -> 0.34 on held-out views,
+    FLIP 0.077 -> 0.092)."""
     material_ids = texel_material_ids(atlas, texels)
     result = tuple(np.array(value, copy=True) for value in trained)
     kept, reverted = [], {}
