@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from shaders.octahedral import pixel_directions, pixel_solid_angles
-from shaders.sg_math import (ggx_alpha, ggx_brdf_cos, ggx_brdf_cos_white, midpoint_parameters, orthonormal_tangents,
+from shaders.sg_math import (ggx_alpha, ggx_brdf_cos_white, midpoint_parameters, orthonormal_tangents,
                              sg_glossy, sg_sum_eval, unit_midpoint)
 
 REFIT_VIEW_COSINES = tuple(np.linspace(0.1, 1.0, 10))  # n.v of the fitted views
@@ -130,11 +130,12 @@ def pixel_integrated_weights(normals: np.ndarray, views: np.ndarray, roughness: 
 
 def reflected_radiance_of_pixels(radiance: np.ndarray, normals: np.ndarray, views: np.ndarray, roughness: np.ndarray,
                                  resolution: int) -> np.ndarray:
-    """(T, V, C) as reflected_radiance, for radiance (T, P, C) given at the P = resolution^2 octahedral pixel
-    centres (a finer grid than the light field's, for lobes narrower than its pixels)."""
+    """(T, V, C) GGX reflection (F0 = 1) of radiance (T, P, C) given at the P = resolution^2 octahedral pixel
+    centres: the exact BRDF summed over the centres times their solid angles (encoding_error_split's whole-sphere
+    fine grid; the refits use pixel_integrated_weights)."""
     directions = pixel_directions(resolution).reshape(-1, 3)
-    weighted = ggx_brdf_cos(directions[None, None], views[:, :, None], np.asarray(normals)[:, None, None],
-                            np.asarray(roughness, np.float64)[:, None, None], UNIT_F0)[..., 0]
+    weighted = ggx_brdf_cos_white(directions[None, None], views[:, :, None], np.asarray(normals)[:, None, None],
+                                  np.asarray(roughness, np.float64)[:, None, None])
     weighted *= pixel_solid_angles(resolution).reshape(1, 1, -1)
     return np.einsum("tvp,tpc->tvc", weighted, radiance)
 
