@@ -501,7 +501,7 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 32,
     SG encoders that error split into the SGs' fit and the node group's closed form (encoding_error_split). The
     light fields are Production's resolution (R = 32) at Draft's density (4 texels per metre) and 32 spp, and the
     free SGs get the presets' lobe refit (lobe_refit_steps; it reaches roughness >= lobe_refit_min_roughness(R):
-    0.29 at R = 32, 0.41 at R = 16); the baselines' fixed lobes have nothing to refit. The CNN is trained `seeds`
+    0.2 at R = 32, 0.28 at R = 16); the baselines' fixed lobes have nothing to refit. The CNN is trained `seeds`
     times on the same light fields (seeds 0, 1, ...): one training's glossy RMSE varies by up to 30 % with its
     initial weights (docs/design-additions.md §26), so a free encoder's row holds the mean over its trainings and
     each training's RMSE (the split is of seed 0's). §18 has the ratios at R = 16 and at 128 spp, §19 the split,

@@ -35,8 +35,8 @@ LIGHTFIELD_RESOLUTIONS = (8, 16, 32, 64, 128)  # powers of two: training/sg_fit.
 # render ~40 min), on a GPU or a farm (--tile i/N) minutes.
 # Adam steps of training/glossy_lobe_fit.py, in every preset. Spheres, the same CNN with and without it, FLIP of
 # the roughness-0.5 sphere: Draft 0.102 -> 0.070 (+10 s), Preview 0.082 -> 0.066 (+30 s); 75 steps gave 0.076 and
-# 0.071 (docs/design-additions.md section 27). It reaches roughness >= 0.41 at R = 16 (Draft, Preview) and >= 0.29
-# at R = 32; the amplitude refit >= 0.28 and >= 0.2.
+# 0.071 (docs/design-additions.md section 27). Both refits reach roughness >= 0.28 at R = 16 (Draft, Preview) and
+# >= 0.2 at R = 32; the lobe refit costs about 20 ms per texel at 16 SGs (section 29).
 LOBE_REFIT_STEPS = 150
 # Production gives every glossy material 16 SGs: on the Production spheres (same light fields) the per-material
 # rule's 8 at roughness 0.4 / 0.5 cost FLIP 0.086 / 0.049 against 0.067 / 0.042 with 16 (section 23).

@@ -6,12 +6,12 @@ put them. This one moves them too: Adam on every parameter of one material's tex
     sum_t  sum_v |sum_k glossy_k(v) - integral L_t(l) f(l, v) (n.l) dl|^2 / sum_v |integral ...|^2
       + LOBE_REFIT_SMOOTHNESS sum_{t,u atlas neighbours} |change_t - change_u|^2
 
-with glossy_k sg_torch.sg_glossy (the node group's closed form), the target the exact GGX reflection of the
-rendered light field over glossy_refit's views (F0 = 1), and change the move from the start values in the encoding
-the shader blends (unit axis, log sharpness, log amplitude). The smoothness term is what keeps bilinear lookups
-right: the shader blends neighbouring texels' parameters slot by slot, and lobes fitted texel by texel blend into
-wrong ones (Production spheres, roughness 0.5, FLIP of the glossy at texel centres 0.078 -> 0.056 without the
-term, but 0.078 -> 0.088 once blended; with it 0.057 and 0.058).
+with glossy_k sg_torch.sg_glossy (the node group's closed form), the target the exact GGX reflection of the rendered
+light field (F0 = 1) over one group of glossy_refit's views per step (LOBE_REFIT_VIEW_GROUPS), and change the move
+from the start values in the encoding the shader blends (unit axis, log sharpness, log amplitude). The smoothness
+term is what keeps bilinear lookups right: the shader blends neighbouring texels' parameters slot by slot, and lobes
+fitted texel by texel blend into wrong ones (Production spheres, roughness 0.5, FLIP of the glossy at texel centres
+0.078 -> 0.056 without the term, but 0.078 -> 0.088 once blended; with it 0.057 and 0.058).
 """
 from __future__ import annotations
 
@@ -20,28 +20,33 @@ import torch
 
 from shaders.sg_math import SHARPNESS_MAX, SHARPNESS_MIN
 from training import sg_torch
-from training.glossy_refit import (REFIT_BATCH, atlas_neighbour_pairs, hemisphere_views, reflected_radiance,
-                                   refit_min_roughness)
+from training.glossy_refit import (REFIT_BATCH, REFIT_LOBE_PIXELS, atlas_neighbour_pairs, hemisphere_views,
+                                   reflected_radiance, refit_min_roughness)
 
 LOBE_REFIT_RATE = 0.02  # Adam's step on unit-axis components, log sharpness and log amplitude
 LOBE_REFIT_SMOOTHNESS = 0.2  # weight of the neighbours' differing changes (1.0 held the fit back: 0.116 vs 0.100)
-LOBE_REFIT_BATCH = 128  # texels per forward and backward pass (memory: ~0.3 GB at 16 SGs)
+# Each Adam step fits one of this many interleaved groups of the views, in turn (every 8th view: 15 of the 120, on
+# all 10 n.v rings). Cheaper per step and a better fit than all views each step: paired harness (free SG4, lobes
+# down to 0.36 pixels) glossy RMSE 0.0358 with all views, 0.0345 with 4 groups, 0.0340 with 8, 0.0345 with 16
+# (docs/design-additions.md section 29).
+LOBE_REFIT_VIEW_GROUPS = 8
+LOBE_REFIT_BATCH = 512  # texels per forward and backward pass (memory: ~0.2 GB at 16 SGs and 15 views)
 AMPLITUDE_FLOOR = 1e-3  # of a texel's largest amplitude: log amplitudes start at least here
-LOBE_REFIT_LOBE_PIXELS = 0.75  # light-field pixels the GGX lobe must span (the amplitude refit's: 0.36)
+LOBE_REFIT_LOBE_PIXELS = REFIT_LOBE_PIXELS  # light-field pixels the GGX lobe must span: the amplitude refit's 0.36
 # The lobe refit is kept unless it raises the error between texels more than this factor: that error is against
 # the light field, which the path-traced reference does not follow where lobes span a pixel or two (docstring below).
 LOBE_REFIT_GUARD_TOLERANCE = 1.15
 
 
 def lobe_refit_min_roughness(resolution: int) -> float:
-    """The least roughness the lobe refit is used at: 0.29 at R = 32, 0.41 at R = 16. Production spheres, R = 32,
+    """The least roughness the lobe refit is used at: 0.2 at R = 32, 0.28 at R = 16, as the amplitude refit. Before
+    the target was integrated over each pixel it stopped at 0.75 pixels (0.29, 0.41). Production spheres, R = 32,
     16 SGs, the same CNN; FLIP against 512-spp Cycles, and the guard's error between texels (light-field target,
     pixel centres then): roughness 0.3 (a 0.81-pixel lobe) FLIP 0.067 -> 0.056 while that error rose 0.343 ->
     0.372; 0.4 (1.45 pixels) 0.061 -> 0.048, error 0.122 -> 0.118; 0.5 (2.3 pixels) error 0.086 -> 0.063. So a
     small rise of that error does not mean a worse bake (LOBE_REFIT_GUARD_TOLERANCE); a blow-up still does.
-    With the pixel-integrated target it could go as low as the amplitude refit (0.36 pixels): measured, it lowered
-    FLIP at 0.2-0.4 but took 126 ms per texel at 16 SGs, courtyard's Draft bake 70 -> 394 s for 0.047 -> 0.046
-    (docs/design-additions.md §28)."""
+    Down to 0.36 pixels with all 120 views each step it cost 126 ms per texel at 16 SGs (courtyard's Draft bake
+    70 -> 394 s); view groups and larger batches brought that down (docs/design-additions.md §28, §29)."""
     return refit_min_roughness(resolution, LOBE_REFIT_LOBE_PIXELS)
 
 
@@ -66,9 +71,11 @@ def lobe_refit_steps(images: np.ndarray, normals: np.ndarray, texels: np.ndarray
     def tensor(x):
         return torch.as_tensor(np.asarray(x), dtype=dtype, device=device)
 
-    target = tensor(target)
-    target_norm = (target ** 2).sum(dim=(1, 2)).clamp_min(1e-12)
-    normal, view = tensor(normals)[:, None, None], tensor(views)[:, :, None]
+    groups = [slice(g, None, LOBE_REFIT_VIEW_GROUPS) for g in range(LOBE_REFIT_VIEW_GROUPS)]
+    group_targets = [tensor(target[:, group]) for group in groups]
+    group_target_norms = [(part ** 2).sum(dim=(1, 2)).clamp_min(1e-12) for part in group_targets]
+    group_views = [tensor(views[:, group])[:, :, None] for group in groups]
+    normal = tensor(normals)[:, None, None]
     rough, f0 = tensor(roughness)[:, None, None], torch.ones(1, dtype=dtype, device=device)
     start_axis = sg_torch.safe_normalize(tensor(axis[:, :k]))
     start_log_sharpness = torch.log(tensor(sharpness[:, :k]).clamp(SHARPNESS_MIN, SHARPNESS_MAX))
@@ -85,6 +92,8 @@ def lobe_refit_steps(images: np.ndarray, normals: np.ndarray, texels: np.ndarray
                 torch.exp(params[1][index]).clamp(SHARPNESS_MIN, SHARPNESS_MAX), torch.exp(params[2][index]))
 
     for step in range(steps):
+        group = step % LOBE_REFIT_VIEW_GROUPS
+        target, target_norm, view = group_targets[group], group_target_norms[group], group_views[group]
         optimiser.zero_grad()
         if len(pairs):
             a, b = pairs[:, 0], pairs[:, 1]
