@@ -26,8 +26,9 @@ from training.glossy_refit import (REFIT_BATCH, REFIT_LOBE_PIXELS, atlas_neighbo
 LOBE_REFIT_RATE = 0.02  # Adam's step on unit-axis components, log sharpness and log amplitude
 LOBE_REFIT_SMOOTHNESS = 0.2  # weight of the neighbours' differing changes (1.0 held the fit back: 0.116 vs 0.100)
 # Each Adam step fits one of this many interleaved groups of the views, in turn (every 8th view: 15 of the 120, on
-# all 10 n.v rings). Cheaper per step and a better fit than all views each step: paired harness (free SG4, lobes
-# down to 0.36 pixels) glossy RMSE 0.0358 with all views, 0.0345 with 4 groups, 0.0340 with 8, 0.0345 with 16
+# all 10 n.v rings), its error relative to that group's own target. Cheaper per step and a better fit than all
+# views each step: paired harness (free SG4, lobes down to 0.36 pixels) glossy RMSE 0.0358 with all views, 0.0345
+# with 4 groups, 0.0340 with 8, 0.0345 with 16; 0.0356 with 8 groups relative to all views' target
 # (docs/design-additions.md section 29).
 LOBE_REFIT_VIEW_GROUPS = 8
 LOBE_REFIT_BATCH = 512  # texels per forward and backward pass (memory: ~0.2 GB at 16 SGs and 15 views)
