@@ -73,7 +73,7 @@ def _mesh_object(scene, name, build, material, matrix=Matrix.Identity(4)):
     bm = bmesh.new()
     bm.loops.layers.uv.new("UVMap")  # the user's own UV map (bmesh fills it where calc_uvs is asked for)
     build(bm)
-    bm.to_mesh(mesh)
+    _to_mesh_in_fixed_order(bm, mesh)
     bm.free()
     mesh.materials.append(material)
     for poly in mesh.polygons:
@@ -82,6 +82,32 @@ def _mesh_object(scene, name, build, material, matrix=Matrix.Identity(4)):
     obj.matrix_world = matrix
     scene.collection.objects.link(obj)
     return obj
+
+
+def _to_mesh_in_fixed_order(bm, mesh):
+    """bm into mesh with its vertices (by position), faces and each face's first loop in one fixed order.
+    bmesh.ops.create_uvsphere orders faces and loops differently in every process (Blender 5.0.1, measured), and
+    xatlas's lightmap layout follows that order: a demo bake resumed, or split over machines with --tile, would
+    pair the light fields of one process's texels with another's surface points."""
+    bm.verts.index_update()
+    rank = {v.index: i for i, v in enumerate(sorted(bm.verts, key=lambda v: tuple(round(c, 6) for c in v.co)))}
+    uv_layer = bm.loops.layers.uv.active
+    faces = []
+    for face in bm.faces:
+        loops = list(face.loops)
+        first = min(range(len(loops)), key=lambda k: rank[loops[k].vert.index])
+        loops = loops[first:] + loops[:first]  # same winding, the lowest-ranked vertex first
+        faces.append(([rank[loop.vert.index] for loop in loops],
+                      [tuple(loop[uv_layer].uv) for loop in loops] if uv_layer is not None else []))
+    faces.sort(key=lambda face: face[0])
+    positions = [None] * len(rank)
+    for v in bm.verts:
+        positions[rank[v.index]] = tuple(v.co)
+    mesh.from_pydata(positions, [], [indices for indices, _ in faces])
+    if uv_layer is not None:
+        mesh.uv_layers.new(name=uv_layer.name).uv.foreach_set("vector", [c for _, uvs in faces for uv in uvs
+                                                                          for c in uv])
+    mesh.validate()
 
 
 def _sphere(radius, segments=32, rings=16):

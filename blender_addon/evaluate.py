@@ -233,6 +233,8 @@ def render_eevee(scene, camera_names, work_dir: Path, samples: int = EEVEE_SAMPL
 
 
 REFERENCE_SAMPLES_MIN = 128
+EVALUATE_VIEWS = 2
+EVALUATE_RESOLUTION = (256, 144)
 
 
 def reference_samples_for(settings) -> int:
@@ -250,8 +252,8 @@ def _reference_key(camera, resolution, reference_samples) -> tuple:
         int(reference_samples)
 
 
-def evaluate_stage(scene, plan, out_dir, *, views: int = 2, resolution=(256, 144), reference_samples: int = 128,
-                   test_samples: int | None = None, with_eevee: bool = True,
+def evaluate_stage(scene, plan, out_dir, *, views: int = EVALUATE_VIEWS, resolution=EVALUATE_RESOLUTION,
+                   reference_samples: int = 128, test_samples: int | None = None, with_eevee: bool = True,
                    reference_cache: dict | None = None) -> dict:
     """test_samples defaults to reference_samples: surfaces the bake does not replace (emitters, rough materials
     left to the renderer) are still path traced in the test render, and must be as converged as in the reference

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import os
-import time
 
 import bpy
 
@@ -108,7 +107,6 @@ class SGLF_OT_bake(bpy.types.Operator):
         except (BakeInputError, OSError) as exc:
             self._finish(context, None, str(exc), "ERROR")
             return {"CANCELLED"}
-        self._started = time.monotonic()
         self._timer = context.window_manager.event_timer_add(0.05, window=context.window)
         context.window_manager.modal_handler_add(self)
         context.window_manager.progress_begin(0, 100)
@@ -146,8 +144,7 @@ class SGLF_OT_bake(bpy.types.Operator):
             self._finish(context, job, f"baked into {job.out_dir}")
             return {"FINISHED"}
         stage, fraction, message = update
-        elapsed = time.monotonic() - self._started
-        eta = elapsed * (1 - fraction) / fraction if fraction > 0.01 else None
+        eta = job.eta_s()
         panel = context.scene.sg_lightfield
         panel.progress = fraction
         panel.status = f"{stage}: {message}" + (f" (ETA {eta:.0f} s)" if eta is not None else "")

@@ -306,6 +306,9 @@ class _RenderScene:
                      "volume_bounces", "transparent_max_bounces", "caustics_reflective", "caustics_refractive",
                      "blur_glossy", "sample_clamp_direct", "sample_clamp_indirect"):
             setattr(cycles, name, getattr(user, name))
+        if min(user.max_bounces, user.diffuse_bounces) == 0:
+            self.warnings.append(f"the scene allows {min(user.max_bounces, user.diffuse_bounces)} diffuse bounces: "
+                                 "baked surfaces still reflect the light of the surfaces they see (one bounce more)")
         cycles.use_denoising = False
         cycles.use_adaptive_sampling = False
         cycles.pixel_filter_type = "BOX"
@@ -341,9 +344,10 @@ class _RenderScene:
         self.scene.camera = camera
         return camera
 
-    def configure(self, kind: str, samples: int | None = None):
+    def configure(self, kind: str, samples: int | None = None, bounce_left_out: str = "diffuse"):
         """Scene state for one pass: which objects, world visibility, material override, samples (`samples`, else
-        the pass's)."""
+        the pass's), and bounces: the scene's less one in all and one of `bounce_left_out` (diffuse or glossy),
+        the scattering the baked surface adds to every path through the light field."""
         scene, settings = self.scene, self.plan.settings
         environment_pass = kind in ("env_radiance", "env_occluded")
         linked = set(scene.collection.objects)
@@ -358,10 +362,13 @@ class _RenderScene:
         scene.view_layers[0].material_override = self.holdout if environment_pass else None
         if self.world is not None:
             self.world.cycles_visibility.camera = environment_pass or not self.plan.environment.iwev
+        user, cycles = self.source.cycles, scene.cycles
         if environment_pass:
-            scene.cycles.max_bounces = 0
+            cycles.max_bounces = 0
         else:
-            scene.cycles.max_bounces = self.source.cycles.max_bounces
+            cycles.max_bounces = max(user.max_bounces - 1, 0)
+            cycles.diffuse_bounces = max(user.diffuse_bounces - (bounce_left_out == "diffuse"), 0)
+            cycles.glossy_bounces = max(user.glossy_bounces - (bounce_left_out == "glossy"), 0)
         scene.cycles.samples = (ENV_RADIANCE_SAMPLES if kind == "env_radiance"
                                 else samples or pass_samples(kind, settings.samples))
 
@@ -407,6 +414,14 @@ def _texel_inputs(atlas, texels):
             channels(atlas, "ray_offset")[r, c].astype(np.float64))
 
 
+def _camera_inputs(atlas, texels) -> np.ndarray:
+    """(T, 7) what the OSL camera renders each texel from: its surface point, normal and ray offset. Tile hashes
+    cover them, so a tile rendered for another capture's texels (another layout, a moved object) is rendered again
+    instead of being taken as finished."""
+    positions, normals, offsets = _texel_inputs(atlas, texels)
+    return np.column_stack([positions, normals, offsets])
+
+
 def midpoint_pairs(atlas: np.ndarray, count: int, seed: int = MIDPOINT_SEED, texel_info=None,
                    objects=None) -> np.ndarray:
     """(M, 4) [row, col, row2, col2]: `count` random adjacent valid texels of one object (adjacent_texel_pairs),
@@ -443,20 +458,29 @@ def _mono(images):
 
 
 def plan_lightfield_tiles(atlas, texel_info, texels, plan, resolution, max_megapixels):
-    """The texels in render order and the light-field tiles: the texels of objects with SGs first, then, where
-    their samples differ, those of objects with lightmaps only in tiles of their own (`lightmap_0000.exr`, ...)
-    that carry the lightmap samples."""
+    """The texels in render order and the light-field tiles, in groups that differ in samples or in the bounce the
+    light field leaves out: the texels of objects with SGs (with those of lightmap-only objects where their samples
+    are the same), those of metal-only objects (`metal_0000.exr`, ...: a glossy bounce left out), then those of
+    lightmap-only objects with samples of their own (`lightmap_0000.exr`, ...)."""
     settings = plan.settings
-    lightmap_only = ~texels_of_objects(atlas, texel_info, texels, plan.sg_objects)
-    if settings.lightmap_pass_samples == settings.samples or not lightmap_only.any():
-        return texels, plan_tiles(texels, resolution, max_megapixels=max_megapixels)
-    ordered = np.concatenate([texels[~lightmap_only], texels[lightmap_only]])
-    with_sgs = plan_tiles(texels[~lightmap_only], resolution, max_megapixels=max_megapixels)
-    lightmaps = plan_tiles(texels[lightmap_only], resolution, max_megapixels=max_megapixels, prefix="lightmap")
-    for tile in lightmaps:
-        tile.index += len(with_sgs)
-        tile.samples = settings.lightmap_pass_samples
-    return ordered, with_sgs + lightmaps
+    with_sgs = texels_of_objects(atlas, texel_info, texels, plan.sg_objects)
+    metal = texels_of_objects(atlas, texel_info, texels, plan.glossy_bounce_objects)
+    own_samples = settings.lightmap_pass_samples != settings.samples
+    groups = [("tile", ~metal & (with_sgs if own_samples else True), 0, "diffuse"),
+              ("metal", metal, 0, "glossy"),
+              ("lightmap", ~with_sgs & own_samples, settings.lightmap_pass_samples, "diffuse")]
+    ordered, tiles = [], []
+    for prefix, mask, samples, bounce in groups:
+        if not mask.any():
+            continue
+        group = plan_tiles(texels[mask], resolution, max_megapixels=max_megapixels, prefix=prefix,
+                           inputs=_camera_inputs(atlas, texels[mask]))
+        for tile in group:
+            tile.index += len(tiles)
+            tile.samples, tile.bounce_left_out = samples, bounce
+        ordered.append(texels[mask])
+        tiles += group
+    return (np.concatenate(ordered) if ordered else texels), tiles
 
 
 def render_stage(scene, plan, out_dir, *, progress=_noop_progress, should_cancel=lambda: False,
@@ -491,7 +515,7 @@ def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: i
         kind_dir = out_dir / kind
         tiles = lightfield_plan if kind == "lightfield" else plan_tiles(
             ids, resolution, max_megapixels=max_tile_megapixels,
-            inputs=np.concatenate(inputs[:2], axis=1) if kind == "midpoints" else None)
+            inputs=np.concatenate(inputs[:2], axis=1) if kind == "midpoints" else _camera_inputs(atlas, ids))
         index = TileIndex(kind, plan_hash, resolution, pass_samples(kind, settings.samples), channel_count, tiles)
         write_index(kind_dir, index)
         mine = parse_share(share, len(tiles))
@@ -513,6 +537,7 @@ def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: i
     if not work:
         yield 1.0, "all tiles already rendered"
     else:
+        yield 0.0, f"{len(work)} tile{'s' if len(work) != 1 else ''} to render"  # starts the stage's clock (ETA)
         with tempfile.TemporaryDirectory(prefix=".sglf-render-", dir=out_dir) as tmp, \
                 _RenderScene(scene, plan, Path(tmp), _texel_inputs(atlas, texels)[0]) as renderer:
             result.warnings.extend(renderer.warnings)
@@ -551,7 +576,7 @@ def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: i
                                               tile.columns, tile.rows)
                     result.env_post_seconds += time.perf_counter() - post
                 else:
-                    renderer.configure(kind, samples)
+                    renderer.configure(kind, samples, tile.bounce_left_out)
                     pixels = renderer.render(positions, normals, offsets, flags, tile.columns, tile.rows,
                                              resolution, f"{kind}_{tile.index}")
                     seconds = time.perf_counter() - tick

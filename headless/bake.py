@@ -80,9 +80,12 @@ def parse_args(args: list[str]) -> argparse.Namespace:
 class Reporter:
     """Progress and results: text for people, one JSON object per line for machines."""
 
-    def __init__(self, as_json: bool, stream=None):
+    def __init__(self, as_json: bool, stream=None, eta_s=None):
+        """eta_s: a function giving the seconds left (the bake job's, which knows its stages); without it the ETA
+        is the current stage's rate applied to the rest of the bar."""
         self.as_json = as_json
         self.stream = stream or sys.stderr
+        self.eta_s = eta_s
         self._stage_start = {}
         self.bar_open = False  # a progress line without its newline yet
 
@@ -102,7 +105,10 @@ class Reporter:
             return  # a person reads a few updates a second, not every epoch
         self._last_bar = now
         done = fraction - start_fraction
-        eta = (now - start) * (1 - fraction) / done if done > 1e-6 and now > start else None
+        if self.eta_s is not None:
+            eta = self.eta_s()
+        else:
+            eta = (now - start) * (1 - fraction) / done if done > 1e-6 and now > start else None
         if self.as_json:
             self.event("progress", stage=stage, fraction=round(fraction, 4), message=message,
                        eta_s=None if eta is None else round(eta, 1))
@@ -257,6 +263,7 @@ def run(ns, reporter: Reporter) -> int:
     job = BakeJob(scene, settings, out, stages=[] if ns.plan_only else ns.stages, share=ns.tile,
                   midpoints=ns.midpoints, tile_megapixels=ns.tile_megapixels, lightmap_uv=ns.lightmap_uv,
                   pack_images=not ns.external_images, reference_samples=ns.reference_samples)
+    reporter.eta_s = job.eta_s
     plan, data = job.plan, job.plan.to_dict()
     reporter.event("plan", summary=data["summary"], hash=data["hash"], texels=data["texels"],
                    decisions=plan.decisions(), warnings=plan.warnings, path=str(out / "plan.json"))

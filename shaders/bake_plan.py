@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -57,6 +58,40 @@ PRESETS = {
 # the closed `room` (12 bounces): 0.25 M/s. Open scenes run faster (DESIGN section 4 saw 0.9 M/s).
 ATLAS_RAYS_PER_SECOND_CPU = 0.25e6
 CYCLES_BYTES_PER_PIXEL = 64  # render buffers of one tile (combined pass, sample count, scratch)
+# The other stages' cost on this machine class, measured on the room Production bake (docs section 31): capture
+# 1.8 s and apply 9.5 s for 40379 texels; the refits after training 101 s (amplitudes) and 276 s (lobes, 150 steps)
+# for 11283 glossy texels at 16 SGs. The evaluate stage path traces each view's reference (two halves) and its
+# baked test at the reference samples, at the atlas render's rate; with the rest of its work, room measured 387 s
+# and 418 s at 512 spp and 107 s at 128, i.e. 2.5 paths per pixel and reference sample.
+CAPTURE_S_PER_TEXEL = 5e-5
+APPLY_S_PER_TEXEL = 2.5e-4
+AMPLITUDE_REFIT_S_PER_TEXEL = 0.009
+LOBE_REFIT_S_PER_TEXEL_STEP = 0.025 / 150
+EVALUATE_PATHS_PER_PIXEL_SAMPLE = 2.5
+EEVEE_EVALUATE_S = 15.0
+
+
+# The refits after training (training/glossy_refit.py, glossy_lobe_fit.py) work where the GGX lobe spans at least
+# this many light-field pixels.
+REFIT_LOBE_PIXELS = 0.36
+
+
+def refit_min_roughness(resolution: int, lobe_pixels: float = REFIT_LOBE_PIXELS) -> float:
+    """The least roughness the amplitude refit is used at: the GGX lobe (about alpha = roughness^2 radians wide)
+    spans REFIT_LOBE_PIXELS light-field pixels (about sqrt(4 pi) / R radians). This gives 0.2 at R = 32, 0.28 at
+    R = 16; sharper lobes see one pixel's constant radiance for most of what they reflect. With pixel-centre
+    quadrature the bound had to be 0.5 pixels (0.24 at R = 32) and the target still aliased near it; the
+    pixel-integrated target let it come down (docs/design-additions.md §28). The train stage keeps a material's
+    refit only where it lowers the held-out error."""
+    return float(math.sqrt(lobe_pixels * math.sqrt(4 * math.pi) / resolution))
+
+
+# The light field leaves out one bounce of the kind the baked surface's own scattering is, so a path through the
+# bake has the scene's bounce budget (render.py _Renderer.configure). Rendered with the scene's own budget, the
+# demo room's walls came out 4-9 % too bright and its Draft FLIP was 0.093; with one diffuse bounce fewer 0.066
+# (docs/design-additions.md section 31). Part of the render stage's hash: light fields of the earlier rule are
+# rendered again.
+LIGHT_FIELD_BOUNCE_RULE = "one fewer of the baked surface's own scattering"
 
 
 # Settings each stage's output depends on (cumulative: a stage also depends on the ones before it).
@@ -197,6 +232,14 @@ class BakePlan:
         return max((m.sg_count for o in self.baked_objects for m in o.materials if m.glossy), default=0)
 
     @property
+    def glossy_bounce_objects(self) -> list[str]:
+        """Baked objects whose light field leaves out a glossy bounce instead of a diffuse one: every baked material
+        on them is a metal (no diffuse lobe), so their own scattering in the bake is glossy."""
+        return [o.name for o in self.baked_objects
+                if any(m.baked for m in o.materials)
+                and all(m.metallic >= ROUGH_METALLIC_MAX for m in o.materials if m.baked)]
+
+    @property
     def lightmap_only_objects(self) -> list[ObjectPlan]:
         """Baked objects without SGs: their texels are rendered at the settings' lightmap_pass_samples."""
         with_sgs = set(self.sg_objects)
@@ -213,6 +256,21 @@ class BakePlan:
         if self.environment.iwev:
             rays += self.texels * r * r / 2  # one primary ray per pixel for L_E * V
         return rays / ATLAS_RAYS_PER_SECOND_CPU
+
+    def stage_estimates_s(self, reference_samples: int = 0, evaluate_pixels: int = 0) -> dict[str, float]:
+        """Expected seconds of each stage on 2 CPU cores: the progress bar's weights, and the ETA of the stages not
+        begun. evaluate_pixels: the evaluate stage's pixels over all its views."""
+        least = refit_min_roughness(self.settings.lightfield_resolution)
+        refitted = sum(o.texels for o in self.baked_objects
+                       if any(m.glossy and m.roughness >= least for m in o.materials))
+        refits = refitted * (AMPLITUDE_REFIT_S_PER_TEXEL
+                                  + LOBE_REFIT_S_PER_TEXEL_STEP * self.settings.lobe_refit_steps)
+        return {"capture": 0.5 + CAPTURE_S_PER_TEXEL * self.texels,
+                "render": self.render_estimate_s(),
+                "train": self.settings.training_budget_s + refits,
+                "apply": 1.0 + APPLY_S_PER_TEXEL * self.texels,
+                "evaluate": EEVEE_EVALUATE_S + EVALUATE_PATHS_PER_PIXEL_SAMPLE * evaluate_pixels * reference_samples
+                / ATLAS_RAYS_PER_SECOND_CPU}
 
     def decisions(self) -> list[str]:
         """What the bake models and why, one line each: what the CLI prints, the panel and the report show."""
@@ -232,6 +290,11 @@ class BakePlan:
             lines.append(f"light fields of objects with lightmaps only ({names}): "
                          f"{self.settings.lightmap_pass_samples} samples per pixel (irradiance needs their mean), "
                          f"the others {self.settings.samples}")
+        if self.baked_objects:
+            metals = self.glossy_bounce_objects
+            lines.append("light fields rendered with one diffuse bounce fewer than the scene allows"
+                         + (f" (metals {', '.join(metals)}: one glossy bounce fewer)" if metals else "")
+                         + ": the baked surface's own scattering is the path's last")
         lines.append(f"environment: {self.environment.reason}")
         if self.lamps or self.emissive_objects:
             lines.append(f"light sources: lamps {self.lamps or 'none'}, "
@@ -288,6 +351,8 @@ class BakePlan:
             for obj in data["objects"]:
                 for material in obj["materials"]:
                     material.pop("sg_count", None)
+        if stage != "capture":
+            data["light_field_bounce_rule"] = LIGHT_FIELD_BOUNCE_RULE
         data.pop("warnings", None)  # prose: rewording it must not invalidate finished renders
         data["environment"].pop("reason", None)
         for obj in data["objects"]:

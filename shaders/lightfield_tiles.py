@@ -39,6 +39,7 @@ class Tile:
     texels: list  # [[atlas_row, atlas_col], ...] in block order
     hash: str = ""
     samples: int = 0  # samples per pixel of this tile; 0: the index's
+    bounce_left_out: str = "diffuse"  # the scattering its texels' surfaces add in the bake: diffuse or glossy
 
     def __post_init__(self):
         if not self.hash:
@@ -72,9 +73,10 @@ def tile_grid(count: int) -> tuple[int, int]:
 
 def plan_tiles(texels: np.ndarray, resolution: int, *, max_megapixels: float = DEFAULT_TILE_MEGAPIXELS,
                prefix: str = "tile", inputs: np.ndarray | None = None) -> list[Tile]:
-    """Split texels (T, 2) into tiles of at most `max_megapixels` of render pixels each. `inputs` (T, ...): per-texel
-    camera inputs not derived from the texel maps alone (the held-out midpoints' surface points); each tile's hash
-    then covers its share of them, so a tile rendered from other inputs is not taken as finished."""
+    """Split texels (T, 2) into tiles of at most `max_megapixels` of render pixels each. `inputs` (T, ...): what the
+    camera renders each texel from (surface points, normals); each tile's hash then covers its share of them, so a
+    tile rendered from other inputs (another capture's layout, the held-out midpoints' points) is not taken as
+    finished."""
     per_tile = max(1, int(max_megapixels * 1e6) // (resolution * resolution))
     tiles = []
     for index, start in enumerate(range(0, len(texels), per_tile)):

@@ -34,6 +34,11 @@ def test_room_and_courtyard_plans():
     assert {base_name(o.name) for o in room.baked_objects} >= {"Glossy Sphere"}
     assert list(map(base_name, room.lamps)) == ["Lamp"] and "Light Panel" in map(base_name, room.emissive_objects)
     assert not room.environment.iwev
+    # The gold sphere is all metal: its own scattering in the bake is glossy, so its light field leaves out a glossy
+    # bounce; the walls' and the floor's leave out a diffuse one.
+    assert list(map(base_name, room.glossy_bounce_objects)) == ["Glossy Sphere"]
+    assert any(line.startswith("light fields rendered with one diffuse bounce fewer") and "Glossy Sphere" in line
+               for line in room.decisions())
     court = build_plan(build_demo_scene("courtyard"), DRAFT)
     assert court.environment.kind == "hdri" and court.environment.iwev
     assert court.environment.iwev_channels in (1, 3)
@@ -248,3 +253,32 @@ def test_cli_eta_counts_only_the_current_stage_progress(monkeypatch, capsys):
     reporter.progress("train", 0.6, "later")
     events = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     assert events[0]["eta_s"] is None and events[1]["eta_s"] == pytest.approx(40.0)
+
+
+def test_the_bake_eta_replays_the_room_production_bake(monkeypatch, tmp_path):
+    """Room Production on this CPU (docs section 31): its first two glossy tiles took 3653 s and held 41.6 % of the
+    render's pixel samples, and 6560 s of render, train, apply and evaluate were left. The job's ETA then is its
+    render rate for the render's rest plus the plan's estimates of the later stages: within 10 % of what was left,
+    where one rate for the whole bar said 14872 s. Between tiles it counts down."""
+    from blender_addon import pipeline
+
+    clock = [0.0]
+    monkeypatch.setattr(pipeline.time, "monotonic", lambda: clock[0])
+    job = pipeline.BakeJob(build_demo_scene("demo:room"), BakeSettings.from_preset("production"), tmp_path)
+    estimates = job.estimates_s
+    assert estimates["render"] == pytest.approx(job.plan.render_estimate_s())
+    assert estimates["train"] > 600  # the budget, and the refits of the floor (0.25) and the gold (0.2) at R = 32
+    job.current_stage = "render"
+    job._overall("render", 0.0)  # the render's first report, before any tile
+    assert job.eta_s() == pytest.approx(sum(estimates[s] for s in ("render", "train", "apply", "evaluate")))
+    clock[0] = 3653.0
+    glossy_samples = 2 * 3906 * 256
+    fraction = glossy_samples / (glossy_samples + 3471 * 256 + (7 * 3906 + 2760) * 64)
+    overall = job._overall("render", fraction)
+    assert job.eta_s() == pytest.approx(6560, rel=0.1)
+    assert overall == pytest.approx((estimates["capture"] + fraction * estimates["render"]) / sum(estimates.values()))
+    clock[0] += 600.0
+    assert job.eta_s() == pytest.approx(6560 - 600, rel=0.1)
+    # Nothing of the gold or the floor reaches the refits at Preview's R = 16: its training is its budget.
+    preview = pipeline.BakeJob(build_demo_scene("demo:room"), BakeSettings.from_preset("preview"), tmp_path / "p")
+    assert preview.estimates_s["train"] == pytest.approx(120.0)

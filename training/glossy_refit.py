@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from shaders.bake_plan import REFIT_LOBE_PIXELS, refit_min_roughness  # noqa: F401 (the refits' bound)
 from shaders.octahedral import pixel_directions, pixel_solid_angles
 from shaders.sg_math import (ggx_alpha, ggx_brdf_cos_white, midpoint_parameters, orthonormal_tangents,
                              sg_glossy, sg_sum_eval, unit_midpoint)
@@ -33,19 +34,8 @@ REFIT_RIDGE_FLOOR = 0.01  # the pull is at least this share of the texel's large
 REFIT_SWEEPS = 200  # projected coordinate-descent sweeps, warm-started from the CNN's amplitudes
 REFIT_BATCH = 32  # texels per vectorised step
 ENCODING_SPLIT_BATCH = 8  # texels per step of encoding_error_split (memory: V x (8 R)^2 per texel)
-REFIT_LOBE_PIXELS = 0.36  # refit only where the GGX lobe spans at least this many light-field pixels
 ERROR_TEXELS_PER_MATERIAL = 128  # texels (evenly picked) the reported error of a material uses
 UNIT_F0 = np.ones(1)
-
-
-def refit_min_roughness(resolution: int, lobe_pixels: float = REFIT_LOBE_PIXELS) -> float:
-    """The least roughness the amplitude refit is used at: the GGX lobe (about alpha = roughness^2 radians wide)
-    spans REFIT_LOBE_PIXELS light-field pixels (about sqrt(4 pi) / R radians). This gives 0.2 at R = 32, 0.28 at
-    R = 16; sharper lobes see one pixel's constant radiance for most of what they reflect. With pixel-centre
-    quadrature the bound had to be 0.5 pixels (0.24 at R = 32) and the target still aliased near it; the
-    pixel-integrated target let it come down (docs/design-additions.md §28). The train stage keeps a material's
-    refit only where it lowers the held-out error."""
-    return float(np.sqrt(lobe_pixels * np.sqrt(4 * np.pi) / resolution))
 
 
 def hemisphere_views(normals: np.ndarray, cosines=REFIT_VIEW_COSINES, azimuths: int = REFIT_VIEW_AZIMUTHS):
