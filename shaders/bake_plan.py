@@ -87,8 +87,8 @@ def refit_min_roughness(resolution: int, lobe_pixels: float = REFIT_LOBE_PIXELS)
 
 
 # The light field leaves out one bounce of the kind the baked surface's own scattering is, so a path through the
-# bake has the scene's bounce budget (render.py _Renderer.configure). Rendered with the scene's own budget, the
-# demo room's walls came out 4-9 % too bright and its Draft FLIP was 0.093; with one diffuse bounce fewer 0.066
+# bake has the scene's bounce budget (render.py _RenderScene.configure). Rendered with the scene's own budget, the
+# demo room's walls came out 4-9 % too bright and its Draft FLIP was 0.090; with one diffuse bounce fewer 0.065
 # (docs/design-additions.md section 31). Part of the render stage's hash: light fields of the earlier rule are
 # rendered again.
 LIGHT_FIELD_BOUNCE_RULE = "one fewer of the baked surface's own scattering"
@@ -263,8 +263,7 @@ class BakePlan:
         least = refit_min_roughness(self.settings.lightfield_resolution)
         refitted = sum(o.texels for o in self.baked_objects
                        if any(m.glossy and m.roughness >= least for m in o.materials))
-        refits = refitted * (AMPLITUDE_REFIT_S_PER_TEXEL
-                                  + LOBE_REFIT_S_PER_TEXEL_STEP * self.settings.lobe_refit_steps)
+        refits = refitted * (AMPLITUDE_REFIT_S_PER_TEXEL + LOBE_REFIT_S_PER_TEXEL_STEP * self.settings.lobe_refit_steps)
         return {"capture": 0.5 + CAPTURE_S_PER_TEXEL * self.texels,
                 "render": self.render_estimate_s(),
                 "train": self.settings.training_budget_s + refits,

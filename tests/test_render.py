@@ -214,14 +214,19 @@ def test_environment_visibility_open_sky_roof_and_roughness(tmp_path):
     assert lightfield[open_sky].max() > 0.1
 
 
-def test_resume_after_cancel_renders_only_the_rest_and_farm_shares_merge(tmp_path):
+def _lit_ball():
+    """A glossy ball under a point lamp and a tiny Draft plan of it: (object, scene, plan)."""
     obj = mesh_object("Ball", uv_sphere(1.0), material("glossy", 0.2))
     lamp = bpy.data.objects.new("Lamp", bpy.data.lights.new("Lamp", "POINT"))
     lamp.location = (2, 2, 2)
     scene = scene_with(obj, lamp)
     uniform_world(scene, (0, 0, 0))
     settings = BakeSettings.from_preset("draft", lightfield_resolution=8, samples=4, texel_density=4.0)
-    plan = build_plan(scene, settings)
+    return obj, scene, build_plan(scene, settings)
+
+
+def test_resume_after_cancel_renders_only_the_rest_and_farm_shares_merge(tmp_path):
+    obj, scene, plan = _lit_ball()
     for out in (tmp_path / "resumed", tmp_path / "fresh", tmp_path / "farm"):
         capture(scene, plan, out)
     calls = []
@@ -253,13 +258,7 @@ def test_a_tile_rendered_for_other_texel_positions_is_rendered_again(tmp_path):
     """Tiles are keyed by what the camera renders each texel from, not only by the texels' atlas cells: after the
     object moves and is captured again into the same directory (same atlas, other surface points), no tile is
     taken as finished, and the light fields are those of the new positions."""
-    obj = mesh_object("Ball", uv_sphere(1.0), material("glossy", 0.2))
-    lamp = bpy.data.objects.new("Lamp", bpy.data.lights.new("Lamp", "POINT"))
-    lamp.location = (2, 2, 2)
-    scene = scene_with(obj, lamp)
-    uniform_world(scene, (0, 0, 0))
-    settings = BakeSettings.from_preset("draft", lightfield_resolution=8, samples=4, texel_density=4.0)
-    plan = build_plan(scene, settings)
+    obj, scene, plan = _lit_ball()
     capture(scene, plan, tmp_path / "bake")
     first = render_stage(scene, plan, tmp_path / "bake", max_tile_megapixels=0.003)
     obj.location.z += 3.0
