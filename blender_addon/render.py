@@ -469,18 +469,24 @@ def plan_lightfield_tiles(atlas, texel_info, texels, plan, resolution, max_megap
     groups = [("tile", ~metal & (with_sgs if own_samples else True), 0, "diffuse"),
               ("metal", metal, 0, "glossy"),
               ("lightmap", ~with_sgs & own_samples, settings.lightmap_pass_samples, "diffuse")]
+    return _grouped_tiles([(prefix, texels[mask], _camera_inputs(atlas, texels[mask]), samples, bounce)
+                           for prefix, mask, samples, bounce in groups], texels, resolution, max_megapixels)
+
+
+def _grouped_tiles(groups, ids, resolution, max_megapixels):
+    """Tiles of (prefix, ids, camera inputs, samples, bounce left out) groups, numbered on from one group to the
+    next; returns the ids in tile order (`ids` when every group is empty) and the tiles."""
     ordered, tiles = [], []
-    for prefix, mask, samples, bounce in groups:
-        if not mask.any():
+    for prefix, group_ids, inputs, samples, bounce in groups:
+        if not len(group_ids):
             continue
-        group = plan_tiles(texels[mask], resolution, max_megapixels=max_megapixels, prefix=prefix,
-                           inputs=_camera_inputs(atlas, texels[mask]))
+        group = plan_tiles(group_ids, resolution, max_megapixels=max_megapixels, prefix=prefix, inputs=inputs)
         for tile in group:
             tile.index += len(tiles)
             tile.samples, tile.bounce_left_out = samples, bounce
-        ordered.append(texels[mask])
+        ordered.append(group_ids)
         tiles += group
-    return (np.concatenate(ordered) if ordered else texels), tiles
+    return (np.concatenate(ordered) if ordered else ids), tiles
 
 
 def render_stage(scene, plan, out_dir, *, progress=_noop_progress, should_cancel=lambda: False,
@@ -504,18 +510,24 @@ def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: i
                                                     max_tile_megapixels)
     result.texels = len(texels)
     jobs = [("lightfield", texels, _texel_inputs(atlas, texels), 3)]
+    planned = {"lightfield": lightfield_plan}  # tiles grouped by samples and bounce; the other passes split evenly
     if midpoints > 0 and plan.sg_objects:
         pairs = midpoint_pairs(atlas, midpoints, texel_info=texel_info, objects=plan.sg_objects)  # what training reads
-        jobs.append(("midpoints", pairs, _midpoint_inputs(scene, atlas, pairs), 3))
+        metal = texels_of_objects(atlas, texel_info, pairs[:, :2], plan.glossy_bounce_objects)
+        inputs = _midpoint_inputs(scene, atlas, pairs)
+        groups = [(prefix, pairs[mask], np.concatenate([a[mask] for a in inputs[:2]], axis=1), 0, bounce)
+                  for prefix, mask, bounce in (("tile", ~metal, "diffuse"), ("metal", metal, "glossy"))]
+        pairs, planned["midpoints"] = _grouped_tiles(groups, pairs, resolution, max_tile_megapixels)
+        order = np.concatenate([np.flatnonzero(~metal), np.flatnonzero(metal)])
+        jobs.append(("midpoints", pairs, tuple(a[order] for a in inputs), 3))
     iwev_channels = plan.environment.iwev_channels if plan.environment.iwev else 0
     if iwev_channels:
         jobs.append(("env_visibility", texels, _texel_inputs(atlas, texels), iwev_channels))
     work = []  # (kind, kind_dir, index, tile, inputs)
     for kind, ids, inputs, channel_count in jobs:
         kind_dir = out_dir / kind
-        tiles = lightfield_plan if kind == "lightfield" else plan_tiles(
-            ids, resolution, max_megapixels=max_tile_megapixels,
-            inputs=np.concatenate(inputs[:2], axis=1) if kind == "midpoints" else _camera_inputs(atlas, ids))
+        tiles = planned[kind] if kind in planned else plan_tiles(
+            ids, resolution, max_megapixels=max_tile_megapixels, inputs=_camera_inputs(atlas, ids))
         index = TileIndex(kind, plan_hash, resolution, pass_samples(kind, settings.samples), channel_count, tiles)
         write_index(kind_dir, index)
         mine = parse_share(share, len(tiles))

@@ -157,6 +157,27 @@ def test_midpoints_on_a_curved_surface_lie_on_it_and_see_what_its_texels_see(tmp
     np.testing.assert_allclose(held_out[full], radiance, rtol=0.05)
 
 
+
+def test_metal_objects_render_in_tiles_that_leave_out_a_glossy_bounce(tmp_path):
+    """A metal's own scattering in the bake is glossy: its texels, and the held-out midpoints on it, render in tiles
+    of their own with a glossy bounce left out; a dielectric's leave out a diffuse one."""
+    metal = mesh_object("Metal", uv_sphere(0.5), material("metal", 0.3, metallic=1.0))
+    glass = mesh_object("Dielectric", uv_sphere(0.5), material("dielectric", 0.3))
+    glass.location.x = 2.0
+    lamp = bpy.data.objects.new("Lamp", bpy.data.lights.new("Lamp", "POINT"))
+    lamp.location = (1, 2, 2)
+    scene = scene_with(metal, glass, lamp)
+    uniform_world(scene, (0, 0, 0))
+    plan, _, atlas = _bake(scene, tmp_path, resolution=8, samples=2, density=4.0, midpoints=40)
+    info = read_texel_maps(tmp_path)[1]
+    for kind in ("lightfield", "midpoints"):
+        for tile in read_index(tmp_path / kind).tiles:
+            on_metal = texels_of_objects(atlas, info, np.asarray(tile.texels)[:, :2], [metal.name])
+            assert on_metal.all() if tile.file.startswith("metal_") else not on_metal.any()
+            assert tile.bounce_left_out == ("glossy" if tile.file.startswith("metal_") else "diffuse")
+        assert any(t.file.startswith("metal_") for t in read_index(tmp_path / kind).tiles)
+
+
 def test_point_and_area_lamps_are_in_the_light_field_and_stay_untouched(tmp_path):
     plane = mesh_object("Plane", lambda bm: bmesh.ops.create_grid(bm, x_segments=1, y_segments=1, size=0.5),
                         material("glossy", 0.2))
