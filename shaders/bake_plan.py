@@ -234,7 +234,7 @@ class BakePlan:
     @property
     def glossy_bounce_objects(self) -> list[str]:
         """Baked objects whose light field leaves out a glossy bounce instead of a diffuse one: every baked material
-        on them is a metal (no diffuse lobe), so their own scattering in the bake is glossy."""
+        on them is at least ROUGH_METALLIC_MAX metallic, so their own scattering in the bake is mostly glossy."""
         return [o.name for o in self.baked_objects
                 if any(m.baked for m in o.materials)
                 and all(m.metallic >= ROUGH_METALLIC_MAX for m in o.materials if m.baked)]
