@@ -514,12 +514,13 @@ def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: i
     if midpoints > 0 and plan.sg_objects:
         pairs = midpoint_pairs(atlas, midpoints, texel_info=texel_info, objects=plan.sg_objects)  # what training reads
         metal = texels_of_objects(atlas, texel_info, pairs[:, :2], plan.glossy_bounce_objects)
+        order = np.argsort(metal, kind="stable")  # the dielectrics' pairs, then the metals': the tiles' order
+        pairs, metal = pairs[order], metal[order]
         inputs = _midpoint_inputs(scene, atlas, pairs)
         groups = [(prefix, pairs[mask], np.concatenate([a[mask] for a in inputs[:2]], axis=1), 0, bounce)
                   for prefix, mask, bounce in (("tile", ~metal, "diffuse"), ("metal", metal, "glossy"))]
-        pairs, planned["midpoints"] = _grouped_tiles(groups, pairs, resolution, max_tile_megapixels)
-        order = np.concatenate([np.flatnonzero(~metal), np.flatnonzero(metal)])
-        jobs.append(("midpoints", pairs, tuple(a[order] for a in inputs), 3))
+        planned["midpoints"] = _grouped_tiles(groups, pairs, resolution, max_tile_megapixels)[1]
+        jobs.append(("midpoints", pairs, inputs, 3))
     iwev_channels = plan.environment.iwev_channels if plan.environment.iwev else 0
     if iwev_channels:
         jobs.append(("env_visibility", texels, _texel_inputs(atlas, texels), iwev_channels))
