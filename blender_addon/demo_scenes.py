@@ -234,12 +234,11 @@ def build_room(scene):
 
 def build_courtyard(scene):
     _mesh_object(scene, "Ground", _plane(12.0, 12.0), _principled("Glossy Ground", (0.4, 0.4, 0.4), roughness=0.3))
-    _mesh_object(scene, "Tall Block", _box(1.0, 1.0, 3.0), _principled("Stone", (0.7, 0.65, 0.6), roughness=0.6),
-                 Matrix.Translation((0.0, 1.0, 1.5)))
+    stone = _principled("Stone", (0.7, 0.65, 0.6), roughness=0.6)  # one material on both stone objects
+    _mesh_object(scene, "Tall Block", _box(1.0, 1.0, 3.0), stone, Matrix.Translation((0.0, 1.0, 1.5)))
     _mesh_object(scene, "Chrome Sphere", _sphere(0.6), _principled("Chrome", (0.9, 0.9, 0.9), 0.15, metallic=1.0),
                  Matrix.Translation((0.9, 0.0, 0.6)))
-    _mesh_object(scene, "Arch Roof", _box(2.5, 1.0, 0.2), _principled("Stone", (0.7, 0.65, 0.6), roughness=0.6),
-                 Matrix.Translation((-1.5, -0.5, 1.6)))
+    _mesh_object(scene, "Arch Roof", _box(2.5, 1.0, 0.2), stone, Matrix.Translation((-1.5, -0.5, 1.6)))
     _mesh_object(scene, "Glossy Box", _box(0.8, 0.8, 0.8), _principled("Glossy Red", (0.7, 0.1, 0.1), roughness=0.3),
                  Matrix.Translation((-1.5, -0.5, 0.4)))
     _world(scene, hdri="courtyard")

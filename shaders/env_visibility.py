@@ -11,6 +11,8 @@ The kernel depends on roughness only: one (P, P) matrix product per distinct rou
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 try:
@@ -32,24 +34,33 @@ def reflection_kernel(resolution: int, roughness: float) -> np.ndarray:
     return np.exp(lam * (d @ d.T - 1.0)) * pixel_solid_angles(resolution).reshape(1, -1)
 
 
-def above_horizon_fraction(normals: np.ndarray, resolution: int) -> np.ndarray:
-    """(T, P) fraction of each octahedral pixel (uniform in octahedral coordinates, as the render's box
-    filter samples it) whose directions lie above the plane of the texel's normal."""
+@functools.lru_cache(maxsize=8)
+def _pixel_subsample_directions(resolution: int) -> np.ndarray:
+    """(P, s*s, 3) directions of an s x s grid inside each pixel, uniform in octahedral coordinates as the
+    render's box filter samples them (s = HORIZON_SUBSAMPLES)."""
     s = HORIZON_SUBSAMPLES
     offsets = (np.arange(s) + 0.5) / s
     centres = ((np.arange(resolution)[:, None] + offsets[None, :]) / resolution * 2 - 1).ravel()  # (R*s,)
     u, v = np.meshgrid(centres, centres, indexing="xy")
     d = oct_decode(np.stack([u, v], axis=-1))  # (R*s, R*s, 3)
     d = d.reshape(resolution, s, resolution, s, 3).transpose(0, 2, 1, 3, 4).reshape(resolution * resolution, s * s, 3)
+    d.setflags(write=False)
+    return d
+
+
+def above_horizon_fraction(normals: np.ndarray, resolution: int) -> np.ndarray:
+    """(T, P) fraction of each octahedral pixel (uniform in octahedral coordinates, as the render's box
+    filter samples it) whose directions lie above the plane of the texel's normal."""
+    d = _pixel_subsample_directions(int(resolution))
     normals = np.asarray(normals, np.float64).reshape(-1, 3)
     unique, inverse = np.unique(np.round(normals, 6), axis=0, return_inverse=True)  # planes share one normal
-    out = np.empty((len(unique), resolution * resolution))
-    for start in range(0, len(unique), 256):
-        n = unique[start:start + 256]
-        cosine = np.einsum("psc,tc->tps", d, n)
+    out = np.empty((len(unique), d.shape[0]))
+    step = max(1, (1 << 24) // d[..., 0].size)  # normals per chunk: its (normals, P, s*s) array stays near 128 MiB
+    for start in range(0, len(unique), step):
+        cosine = np.einsum("psc,tc->tps", d, unique[start:start + step])
         # sub-samples exactly on the horizon (they exist: the fold diagonal passes through pixel corners)
         # count one half, as the continuous area does
-        out[start:start + 256] = (0.5 + 0.5 * np.sign(np.where(np.abs(cosine) < 1e-12, 0.0, cosine))).mean(axis=-1)
+        out[start:start + step] = (0.5 + 0.5 * np.sign(np.where(np.abs(cosine) < 1e-12, 0.0, cosine))).mean(axis=-1)
     return out[inverse.reshape(-1)]
 
 
