@@ -420,6 +420,7 @@ def bench_presets(out_root: Path, scenes, presets, earlier_rows=(), device: str 
                          "reference_noise_flip_by_roughness": {
                              k: None if v["flip"] is None else round(v["flip"], 4)
                              for k, v in errors["reference_noise_flip_by_roughness"].items()}})
+            _discard_scene(scene)
             row = rows[-1]
             shares = ", ".join(f"{k} {100 * v:.0f}%" for k, v in row["stage_share"].items())
             print(f"preset {preset:<10} {name:<10} bake {row['bake_s']:7.1f} s ({shares}); FLIP {row['flip']:.4f} "
@@ -427,6 +428,18 @@ def bench_presets(out_root: Path, scenes, presets, earlier_rows=(), device: str 
                   f"{row['reference_noise_flip_by_roughness']}, by material {row['flip_by_material']}")
     rows.sort(key=lambda r: (r["scene"], _device_of(r), list(PRESETS).index(r["preset"])))
     return rows
+
+
+def _discard_scene(scene):
+    """Remove a demo scene, its bake and every data-block only it used, so the next demo built in this process gets
+    its own names: its plan and report say "Floor", not "Floor.002"."""
+    import bpy
+
+    from blender_addon.apply import remove_bake
+
+    remove_bake(scene)
+    bpy.data.scenes.remove(scene)
+    bpy.data.orphans_purge(do_local_ids=True, do_linked_ids=True, do_recursive=True)
 
 
 def _device_of(row: dict) -> str:
