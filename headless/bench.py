@@ -521,7 +521,7 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 32,
     §22 against texel density, §25-26 this setting's."""
     import numpy as np
 
-    from blender_addon.apply import apply_stage, remove_bake
+    from blender_addon.apply import apply_stage
     from blender_addon.capture import capture
     from blender_addon.demo_scenes import build_demo_scene
     from blender_addon.evaluate import evaluate_stage
@@ -599,7 +599,7 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 32,
                 "flip_by_roughness": {k: v["flip"] for k, v in classes.items()},
                 "rmse_by_roughness": {k: v["rmse"] for k, v in classes.items()},
                 "flip_by_material": {k: v["flip"] for k, v in errors["flip_by_material"].items()}})
-        remove_bake(scene)  # after the last training: the next apply replaces a bake, a removed one needs a capture
+        _discard_scene(scene)  # after the last training: bake removed, scene deleted, names free again
         rows.append({"encoder": name, "texel_density": texel_density, "reference_samples": reference_samples,
                      **_mean_over_trainings(trainings),
                      "trainings": [{"seed": t["seed"], "glossy_rmse": round(t["glossy_rmse"], 4),
@@ -718,6 +718,7 @@ def bench_knobs(out_root: Path, scene_name: str = "spheres", sweep=None) -> list
               f"{r['glossy_flip']:.4f} (reference noise {r['glossy_noise_flip']:.4f})  rough (lightmap) FLIP "
               f"{r['lightmap_flip']} (noise {r['lightmap_noise_flip']})  ({r['texels']} texels, "
               f"{r['bytes_per_texel']} B/texel)", flush=True)
+        _discard_scene(scene)
     return rows
 
 
@@ -758,6 +759,7 @@ def bench_stability(out_root: Path, variants=None) -> list[dict]:
                      "flip": round(errors["flip"], 4), "psnr_db": round(errors["psnr"], 2),
                      "reference_noise_rmse": round(errors["reference_noise_rmse"], 4),
                      "warnings": list(job.plan.warnings)})
+        _discard_scene(scene)
         r = rows[-1]
         print(f"stability {variant:<14} finite {str(r['finite']):<5} bake {r['bake_s']:6.1f} s  light field max "
               f"{r['lightfield_max']:10.4g}  SG amplitude max {r['amplitude_max']:10.4g}  FLIP {r['flip']:.4f}  "
