@@ -217,6 +217,23 @@ def test_bench_checks_the_encoder_settings_before_any_work(tmp_path, capsys, arg
     assert not (tmp_path / "bench").exists()  # stopped before it made its output directory
 
 
+def test_the_bench_discards_a_demo_scene_so_the_next_one_built_gets_the_same_names():
+    from headless.bench import _discard_scene
+
+    def names(scene):
+        objects = sorted(o.name for o in scene.objects)
+        return objects, sorted({s.material.name for o in scene.objects for s in o.material_slots if s.material})
+
+    first = build_demo_scene("demo:courtyard")
+    first_names, scenes = names(first), len(bpy.data.scenes)
+    _discard_scene(first)
+    assert len(bpy.data.scenes) == scenes - 1
+    assert not any(bpy.data.objects.get(n) for n in first_names[0])  # its objects went with it
+    second = build_demo_scene("demo:courtyard")
+    assert names(second) == first_names  # the bench's per-material rows say "Stone", not "Stone.001"
+    _discard_scene(second)
+
+
 def test_cli_device_cuda_without_an_optix_gpu_stops_with_one_error_line(tmp_path):
     from blender_addon.render import optix_devices
 
