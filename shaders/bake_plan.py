@@ -389,9 +389,22 @@ def drive(steps, progress=None, should_cancel=lambda: False, cancelled_message="
             progress(fraction, message)
 
 
+def finite_or_null(value):
+    """`value` with every non-finite float replaced by None. JSON has no NaN or Infinity: Python writes them, but
+    strict readers (jq, JavaScript) refuse the file. The one that occurs: PSNR of identical images (an all-black
+    scene's bake and reference), written as null."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: finite_or_null(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite_or_null(v) for v in value]
+    return value
+
+
 def write_json_atomic(path, data) -> Path:
     with atomic_output(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
+        tmp.write_text(json.dumps(finite_or_null(data), indent=2, sort_keys=True, allow_nan=False) + "\n")
     return Path(path)
 
 

@@ -29,6 +29,11 @@ def _image(path: Path) -> str:
     return f'<img src="data:image/png;base64,{data}" style="max-width:100%;image-rendering:pixelated">'
 
 
+def _psnr(value) -> str:
+    """PSNR in dB; report.json holds null where it is infinite (bake and reference identical, e.g. all black)."""
+    return "∞ dB (identical images)" if value is None or value == float("inf") else f"{value:.2f} dB"
+
+
 def _error_rows(label: str, errors: dict, before: dict, before_label: str) -> list:
     """One row per material: its error, and the error before a refit where there is one."""
     return [(f"{label}, {material}", error if material not in before else
@@ -66,9 +71,8 @@ def write_report_html(out_dir) -> Path:
         rows += [("apply warning", warning) for warning in apply.get("warnings", ())]
     rows += [(f"{stage} seconds", seconds) for stage, seconds in timings.items()]
     errors = report.get("errors", {})
-    rows += [(f"error {key}", errors.get(key)) for key in ("rmse", "psnr", "flip", "reference_noise_rmse",
-                                                            "reference_noise_flip")
-             if key in errors]
+    rows += [(f"error {key}", _psnr(errors[key]) if key == "psnr" else errors[key])
+             for key in ("rmse", "psnr", "flip", "reference_noise_rmse", "reference_noise_flip") if key in errors]
     rows += [(f"FLIP where {name}", entry["flip"]) for name, entry in errors.get("flip_by_roughness", {}).items()
              if entry.get("pixels")]
     noise_by_class = errors.get("reference_noise_flip_by_roughness", {})
@@ -88,7 +92,8 @@ def write_report_html(out_dir) -> Path:
     if "error" in eevee:
         rows.append(("EEVEE", f"not rendered: {eevee['error']}"))
     elif eevee:
-        rows += [("EEVEE FLIP vs reference", eevee.get("flip")), ("EEVEE PSNR", eevee.get("psnr")),
+        rows += [("EEVEE FLIP vs reference", eevee.get("flip")),
+                 ("EEVEE PSNR", _psnr(eevee["psnr"]) if "psnr" in eevee else None),
                  ("EEVEE FLIP vs Cycles bake", eevee.get("flip_vs_cycles_bake")),
                  ("EEVEE first render s (incl. shader compile)", eevee.get("first_render_s"))]
         rows += [("EEVEE shader failed (renders magenta)", error) for error in eevee.get("shader_errors", ())]
@@ -124,11 +129,11 @@ def write_report_html(out_dir) -> Path:
     parts.append("</table>")
     pictures = [(name, caption) for name, caption in PICTURE_CAPTIONS if (out_dir / name).is_file()]
     pictures += [(view["picture"], f"{view['view']}: reference | SG bake | FLIP error (FLIP {view['flip']:.4f}, "
-                                   f"PSNR {view['psnr']:.2f} dB)") for view in errors.get("views", [])
+                                   f"PSNR {_psnr(view['psnr'])})") for view in errors.get("views", [])
                  if (out_dir / view["picture"]).is_file()]
     if eevee and "error" not in eevee:
         pictures += [(view["picture"], f"view {k}: Cycles reference | EEVEE with the bake | FLIP error "
-                                       f"(FLIP {view['flip']:.4f}, PSNR {view['psnr']:.2f} dB)")
+                                       f"(FLIP {view['flip']:.4f}, PSNR {_psnr(view['psnr'])})")
                      for k, view in enumerate(eevee.get("views", [])) if (out_dir / view["picture"]).is_file()]
     if pictures:
         parts.append("<h2>Pictures</h2>")

@@ -276,6 +276,26 @@ def test_cli_capture_writes_report_and_pictures(tmp_path):
     assert all((tmp_path / name).is_file() for name in CAPTURE_PICTURES)
 
 
+def test_report_json_stays_strict_json_when_the_bake_equals_its_reference(tmp_path):
+    """An all-black scene's bake and reference are identical: PSNR is infinite. Python wrote that as `Infinity`,
+    which jq and JavaScript refuse; report.json holds null and report.html says what it means."""
+    from shaders.bake_report import save_png, update_report
+
+    save_png(tmp_path / "view0.png", np.zeros((4, 12, 3)))
+    update_report(tmp_path, "plan", errors={"rmse": 0.0, "psnr": float("inf"), "flip": 0.0, "views": [
+        {"view": "Camera", "rmse": 0.0, "psnr": float("inf"), "flip": 0.0, "picture": "view0.png"}]},
+        lightfield_max=float("nan"))
+
+    def refuse(constant):
+        raise ValueError(f"not JSON: {constant}")
+
+    report = json.loads((tmp_path / "report.json").read_text(), parse_constant=refuse)
+    assert report["errors"]["psnr"] is None and report["errors"]["views"][0]["psnr"] is None
+    assert report["lightfield_max"] is None and report["errors"]["flip"] == 0.0
+    page = (tmp_path / "report.html").read_text()
+    assert "error psnr</th><td>∞ dB (identical images)" in page and "PSNR ∞ dB (identical images))" in page
+
+
 def test_demo_scenes_save_as_blend_and_reopen(tmp_path):
     for name in ("spheres", "hair"):
         scene = build_demo_scene(f"demo:{name}")
