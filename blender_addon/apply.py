@@ -34,10 +34,12 @@ try:  # inside the installed extension the numpy side is a sibling package
                                    sg_texture_path)
     from ..shaders.texel_maps import channels, read_texel_maps, smooth_over_texels, texels_of_objects
     from .capture import LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, remove_lightmap_uvs
-    from .scene_analysis import BAKED_COPY_KEY, principled_surface
+    from .surface_shaders import (COPY_KEY, COPY_SUFFIX, LeafInputs, copy_material, remove_unused_group_copies,
+                                  rewrite_surface)
 except ImportError:  # bpy as a module with the repository on sys.path
     from blender_addon.capture import LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, remove_lightmap_uvs
-    from blender_addon.scene_analysis import BAKED_COPY_KEY, principled_surface
+    from blender_addon.surface_shaders import (COPY_KEY, COPY_SUFFIX, LeafInputs, copy_material,
+                                               remove_unused_group_copies, rewrite_surface)
     from shaders.bake_plan import BakeInputError
     from shaders.bake_report import update_report
     from shaders.exr_io import write_exr
@@ -52,8 +54,6 @@ except ImportError:  # bpy as a module with the repository on sys.path
     from shaders.texel_maps import channels, read_texel_maps, smooth_over_texels, texels_of_objects
 
 BAKE_RECORD_KEY = "sglf_bake"  # on the scene: JSON {object: {slot index: original material}}
-COPY_SUFFIX = " (SG bake)"
-COPY_KEY = BAKED_COPY_KEY  # on a baked copy: the original material's name
 FAKE_USER_KEY = "sglf_fake_user_set"  # on an original: we set its fake user (and clear it again)
 IMAGE_NAME = "SG Lightfield textures"
 PACKED_FILE = "sg_packed.exr"
@@ -162,18 +162,8 @@ def _load_image(path: Path, pack: bool):
     return image
 
 
-def _baked_material(original, group, surface: dict):
-    """The baked copy of `original`: the lightmap UV into the atlas, the node group's Total as emission into one
-    Material Output for all renderers."""
-    name = original.name + COPY_SUFFIX
-    material = bpy.data.materials.get(name)
-    if material is None or material.get(COPY_KEY) != original.name:
-        material = original.copy()
-        material.name = name
-        material[COPY_KEY] = original.name
-    material.use_fake_user = False
-    tree = material.node_tree
-    tree.nodes.clear()
+def _lightmap_uv(tree):
+    """Nodes in `tree` giving the atlas UV of the shaded point: the lightmap layer placed in the object's tile."""
     uv = tree.nodes.new("ShaderNodeUVMap")
     uv.uv_map = LIGHTMAP_LAYER
     offset = tree.nodes.new("ShaderNodeAttribute")
@@ -185,34 +175,83 @@ def _baked_material(original, group, surface: dict):
     tree.links.new(uv.outputs["UV"], atlas_uv.inputs[0])
     tree.links.new(scale.outputs["Vector"], atlas_uv.inputs[1])
     tree.links.new(offset.outputs["Vector"], atlas_uv.inputs[2])
-    geometry = tree.nodes.new("ShaderNodeNewGeometry")
-    for i, n in enumerate((uv, scale, offset, atlas_uv, geometry)):
-        n.location = (220 * i, 0)
-    albedo = [c * (1 - surface["metallic"]) for c in surface["base_color"]]
-    node = tree.nodes.new("ShaderNodeGroup")
-    node.node_tree = group
-    tree.links.new(atlas_uv.outputs["Vector"], node.inputs["UV"])
-    tree.links.new(geometry.outputs["Normal"], node.inputs["Normal"])
-    node.inputs["Roughness"].default_value = surface["roughness"]
-    node.inputs["F0"].default_value = (*surface["f0"], 1.0)
-    node.inputs["Albedo"].default_value = (*albedo, 1.0)
-    emission = tree.nodes.new("ShaderNodeEmission")
-    tree.links.new(node.outputs["Total"], emission.inputs["Color"])
-    output = tree.nodes.new("ShaderNodeOutputMaterial")
-    output.target = "ALL"
-    tree.links.new(emission.outputs[0], output.inputs["Surface"])
-    for i, n in enumerate((node, emission, output)):
-        n.location = (220 * (5 + i), 0)
+    left = min((n.location.x for n in tree.nodes if n not in (uv, offset, scale, atlas_uv)), default=0.0)
+    for i, node in enumerate((uv, scale, offset, atlas_uv)):
+        node.location, node.hide = (left - 900 + 220 * i, 400), True
+    return atlas_uv.outputs["Vector"]
+
+
+def _baked_material(original, group, irradiance_group):
+    """The baked copy of `original`: its own node tree with every baked BSDF replaced by an emission of the bake's
+    shading (surface_shaders.rewrite_surface). The SG group takes the BSDF's own inputs (normal or bump map,
+    roughness, F0 and diffuse albedo computed per pixel from base colour, metallic, IOR, specular level and tint);
+    a Diffuse BSDF shows its colour times the group's Irradiance (E / pi); a Principled BSDF's emission is kept.
+    An earlier copy is replaced by a fresh one (its users follow), so a re-apply starts from the user's material.
+    `irradiance_group()` makes the irradiance-only group, called only when a Diffuse BSDF needs it."""
+    stale = bpy.data.materials.get(original.name + COPY_SUFFIX)
+    if stale is not None and stale.get(COPY_KEY) == original.name:
+        stale.name = stale.name + " (stale)"
+    else:
+        stale = None
+    material = copy_material(original)
+    if stale is not None:
+        stale.user_remap(material)
+        bpy.data.materials.remove(stale)
+    uv_of_tree = {}
+
+    def build_leaf(tree, bsdf):
+        inputs = LeafInputs(tree, bsdf)
+        key = tree.as_pointer()
+        if key not in uv_of_tree:
+            uv_of_tree[key] = _lightmap_uv(tree)
+        node = inputs._new("ShaderNodeGroup", node_tree=irradiance_group() if bsdf.type == "BSDF_DIFFUSE" else group)
+        node.hide = False
+        tree.links.new(uv_of_tree[key], node.inputs["UV"])
+        inputs.feed(node.inputs["Normal"], inputs.normal())
+        inputs.feed(node.inputs["Roughness"], inputs.roughness())
+        inputs.feed(node.inputs["F0"], inputs.f0())
+        inputs.feed(node.inputs["Albedo"], inputs.albedo())
+        if bsdf.type == "BSDF_DIFFUSE":
+            shaded = inputs.emission_of(inputs.multiply_colours(node.outputs["Irradiance"], inputs.base_colour()))
+        else:  # one emission per output, summed as closures: the group's Total, or the same sum in math nodes, renders
+            # black in Cycles 5.0 when a Bump node with a textured height feeds Normal (measured: the Glossy,
+            # Environment and Diffuse outputs each render right, and so do their emissions added as shaders)
+            shaded = None
+            for output in ("Glossy", "Environment", "Diffuse"):
+                if output == "Environment" and not group.get("sglf_has_environment", True):
+                    continue
+                emission = inputs.emission_of(node.outputs[output])
+                shaded = emission if shaded is None else inputs.add_shaders(shaded, emission)
+        return inputs.add_shaders(shaded, inputs.emission())
+
+    rewrite_surface(material, build_leaf)
     return material
 
 
-def baked_group(material, renderer: str = "EEVEE"):
-    """The node group a baked material shades with in `renderer` ('EEVEE' or 'CYCLES'), or None."""
+def baked_groups(material, renderer: str = "EEVEE") -> list:
+    """The bake's node groups (SG Lightfield ...) that `renderer`'s ('EEVEE' or 'CYCLES') Material Output of a baked
+    material reaches, through the user's nodes and node groups, in the order first reached."""
+    found, seen = [], set()
     output = material_output(material.node_tree, renderer)
-    node = output.inputs["Surface"].links[0].from_node if output and output.inputs["Surface"].is_linked else None
-    color = node.inputs["Color"] if node is not None and "Color" in node.inputs else None
-    group = color.links[0].from_node if color is not None and color.is_linked else None
-    return group.node_tree if group is not None and group.bl_idname == "ShaderNodeGroup" else None
+    stack = [output] if output is not None else []
+    while stack:
+        node = stack.pop()
+        if node.as_pointer() in seen:
+            continue
+        seen.add(node.as_pointer())
+        if node.bl_idname == "ShaderNodeGroup" and node.node_tree is not None:
+            if node.node_tree.get(VERSION_KEY) and node.node_tree.name.startswith(GROUP_NAME):
+                found.append(node.node_tree)
+                continue
+            stack += [n for n in node.node_tree.nodes if n.bl_idname == "NodeGroupOutput"]
+        stack += [link.from_node for socket in node.inputs for link in socket.links if not link.is_muted]
+    return list(dict.fromkeys(found))
+
+
+def baked_group(material, renderer: str = "EEVEE"):
+    """The first of baked_groups (the one a single-BSDF material shades with), or None."""
+    groups = baked_groups(material, renderer)
+    return groups[0] if groups else None
 
 
 def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None) -> dict:
@@ -268,12 +307,13 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
             if not original.use_fake_user:
                 original.use_fake_user = True
                 original[FAKE_USER_KEY] = True
-            copy = _baked_material(original, group_for(baked_counts[original.name]), principled_surface(original))
+            copy = _baked_material(original, group_for(baked_counts[original.name]), lambda: group_for(0))
             slot.material = copy
             slots[str(index)] = original.name
             scene[BAKE_RECORD_KEY] = json.dumps(record)  # recorded at once: an interrupted apply can be undone
             baked_materials.add(copy.name)
     scene[BAKE_RECORD_KEY] = json.dumps(record)
+    remove_unused_group_copies()  # of an earlier apply's copies
     _remove_unused_groups()  # of an earlier bake with other SG counts
     uniform_bytes = {name: eevee_uniform_bytes(bpy.data.materials[name])["bytes"] for name in sorted(baked_materials)}
     warnings = [f"'{name}' needs {size} bytes of EEVEE uniforms, more than the {UNIFORM_BLOCK_LIMIT} EEVEE allows: "
@@ -331,6 +371,7 @@ def remove_bake(scene) -> int:
         restored += 1
     for material in [m for m in bpy.data.materials if COPY_KEY in m and m.users == 0]:
         bpy.data.materials.remove(material)
+    remove_unused_group_copies()
     for name in originals:
         original = bpy.data.materials.get(name)
         if original is not None and original.get(FAKE_USER_KEY):

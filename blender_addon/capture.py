@@ -31,18 +31,20 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
     from ..shaders.bake_report import update_report
     from ..shaders.exr_io import write_exr
-    from ..shaders.texel_maps import (CAPTURE_PICTURES, FLAG_BURIED, FLAG_CENTRE_INSIDE, FLAG_COVERED, FLAG_GUTTER,
+    from ..shaders.texel_maps import (CHANNEL, CAPTURE_PICTURES, FLAG_BURIED, FLAG_CENTRE_INSIDE, FLAG_COVERED, FLAG_GUTTER,
                                       FLAG_PUSHED_OUT, TEXEL_CHANNELS, TEXELS_FILE, TEXELS_JSON, save_capture_pictures)
     from ..shaders.texel_raster import centre_overlap_count, dilate, rasterize, shelf_pack, signed_areas
     from .scene_analysis import (active_scene, loop_triangle_arrays, principled_surface, transform_points,
                                  triangle_areas, unbaked)
+    from .surface_probe import measure_surfaces
 except ImportError:  # bpy as a module with the repository on sys.path
+    from blender_addon.surface_probe import measure_surfaces
     from blender_addon.scene_analysis import (active_scene, loop_triangle_arrays, principled_surface,
                                               transform_points, triangle_areas, unbaked)
     from shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
     from shaders.bake_report import update_report
     from shaders.exr_io import write_exr
-    from shaders.texel_maps import (CAPTURE_PICTURES, FLAG_BURIED, FLAG_CENTRE_INSIDE, FLAG_COVERED, FLAG_GUTTER,
+    from shaders.texel_maps import (CHANNEL, CAPTURE_PICTURES, FLAG_BURIED, FLAG_CENTRE_INSIDE, FLAG_COVERED, FLAG_GUTTER,
                                     FLAG_PUSHED_OUT, TEXEL_CHANNELS, TEXELS_FILE, TEXELS_JSON, save_capture_pictures)
     from shaders.texel_raster import centre_overlap_count, dilate, rasterize, shelf_pack, signed_areas
 
@@ -88,6 +90,7 @@ class CaptureResult:
     objects: list
     materials: list
     warnings: list = field(default_factory=list)
+    surface_probe: dict = field(default_factory=dict)  # what measure_surfaces baked: objects, materials, seconds
     seconds: float = 0.0
 
 
@@ -211,7 +214,7 @@ def _material_table(objects, plan):
             surface = principled_surface(material)
             mp = plans.get(name)
             if mp is not None:
-                surface["roughness"], surface["metallic"] = mp.roughness, mp.metallic
+                surface["roughness"], surface["metallic"], surface["textured"] = mp.roughness, mp.metallic, mp.textured
             table.append({"id": len(names), "name": name, **surface})
     return table
 
@@ -452,6 +455,11 @@ def capture(scene, plan, out_dir, *, lightmap_uv_layer: str = "", progress=_noop
         if not np.any(covered):
             raise BakeInputError(f"no texel was produced at {plan.settings.texel_density:g} texels/m; "
                                  "raise the texel density")
+        textured = {m.name for o in plan.objects for m in o.materials if m.baked and m.textured}
+        progress(0.45, "material values of textured surfaces")
+        maps["surface"], measured, probe_info = measure_surfaces(
+            scene, objects, tiles, (atlas_h, atlas_w), maps["object_id"], lambda material: material.name in textured)
+        maps["measured"] = measured & covered
         progress(0.5, "push-out of texels inside geometry")
         bvh, scene_size = scene_bvh(scene, depsgraph)
     rows, cols = np.nonzero(covered)
@@ -474,16 +482,17 @@ def capture(scene, plan, out_dir, *, lightmap_uv_layer: str = "", progress=_noop
     gutter = reached & ~covered
     filled["flags"][gutter] = FLAG_GUTTER
     atlas = _texel_atlas(filled, valid, materials)
+    _measured_statistics(materials, atlas, probe_info)
     result = CaptureResult(atlas_w, atlas_h, int(np.count_nonzero(valid)),
                            round(100.0 * np.count_nonzero(valid) / (atlas_w * atlas_h), 3),
                            int(np.count_nonzero(pushed)), int(np.count_nonzero(buried)),
-                           [asdict(t) for t in tiles], materials, warnings)
+                           [asdict(t) for t in tiles], materials, warnings, probe_info)
     _write_outputs(out_dir, plan, atlas, result)
     result.seconds = time.perf_counter() - start
     update_report(out_dir, plan.stage_hash("capture"), timings_s={"capture": result.seconds}, texels=result.texels,
                   coverage_percent=result.coverage_percent, pushed_out_texels=result.pushed_out_texels,
                   buried_texels=result.buried_texels, atlas=[atlas_w, atlas_h], sg_count=plan.max_sg_count,
-                  capture_pictures=list(CAPTURE_PICTURES))
+                  capture_pictures=list(CAPTURE_PICTURES), surface_probe=probe_info)
     progress(1.0, f"{result.texels} texels")
     return result
 
@@ -494,12 +503,35 @@ def _texel_atlas(maps, valid, materials):
     for m in materials:
         by_id[m["id"]] = [m["roughness"], m["metallic"], *m["base_color"], *m["f0"]]
     surface = by_id[maps["material_id"]]
+    measured = maps["measured"]
+    surface[measured] = maps["surface"][measured]  # textured materials: the values Cycles measured per texel
     columns = [maps["P"], maps["Ng"], maps["N"], surface, valid[..., None].astype(np.float64),
                maps["flags"][..., None], maps["object_id"][..., None], maps["material_id"][..., None],
                maps["texel_size"][..., None], maps["ray_offset"][..., None]]
     atlas = np.concatenate(columns, axis=-1).astype(np.float32)
     assert atlas.shape == (h, w, len(TEXEL_CHANNELS))
     return atlas
+
+
+def _measured_statistics(materials, atlas, probe_info):
+    """Add what was measured per textured material to its entry of the material table: the 5th, 50th and 95th
+    percentiles of its texels' roughness and metallic and the mean base colour; and the probe's time."""
+    rows, cols = np.nonzero(atlas[..., CHANNEL["valid"]] > 0)
+    ids = atlas[rows, cols, CHANNEL["material_id"]].astype(np.int64)
+    for material in materials:
+        mine = ids == material["id"]
+        if not material.get("textured") or not np.any(mine):
+            continue
+        texels = atlas[rows[mine], cols[mine]]
+
+        def percentiles(channel):
+            return [round(float(v), 4) for v in np.percentile(texels[:, CHANNEL[channel]], (5, 50, 95))]
+
+        material["measured"] = {"texels": int(np.count_nonzero(mine)), "roughness_p5_p50_p95": percentiles("roughness"),
+                                "metallic_p5_p50_p95": percentiles("metallic"),
+                                "base_color_mean": [round(float(texels[:, CHANNEL[c]].mean()), 4)
+                                                    for c in ("base.R", "base.G", "base.B")]}
+    probe_info["materials"] = [m["name"] for m in materials if "measured" in m]
 
 
 def _write_outputs(out_dir, plan, atlas, result):

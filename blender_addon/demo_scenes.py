@@ -6,6 +6,11 @@ Selectable everywhere as ``demo:NAME``: ``build_demo_scene("room")`` returns a n
   room       closed room, coloured walls, glossy floor, a glossy and a rough object, an emissive
              ceiling panel and one point lamp.
   courtyard  objects that occlude each other under Blender's shipped courtyard HDRI.
+  materials  the materials real scenes have: a checker floor with a noise roughness through Map Range and a bump
+             map, an image-textured metal sphere, a Mix Shader of Diffuse and Glossy with a textured factor, a
+             Principled BSDF inside a node group behind reroutes, a glossy sign with textured emission; and what
+             the bake leaves to the renderer: a glass sphere, an alpha cut-out leaf card, a coated box; an area
+             lamp and Blender's shipped interior HDRI.
   hair       a head-like mesh with a groom made by Blender's shipped procedural hair node assets;
              ``hair-straight``, ``hair-wavy`` (= ``hair``), ``hair-curly`` and ``hair-clumped`` pick the style.
 """
@@ -25,7 +30,7 @@ except ImportError:  # bpy as a module with the repository on sys.path
     from blender_addon.scene_analysis import empty_node_material, enable_nodes
     from shaders.bake_plan import BakeInputError
 
-DEMO_SCENES = ("spheres", "room", "courtyard", "hair")
+DEMO_SCENES = ("spheres", "room", "courtyard", "materials", "hair")
 HAIR_STYLES = ("straight", "wavy", "curly", "clumped")
 DEMO_PREFIX = "demo:"
 
@@ -245,6 +250,139 @@ def build_courtyard(scene):
     _camera(scene, (3.5, -5.5, 2.5), (-0.3, 0.0, 0.8), lens=30.0)
 
 
+def _node(tree, kind, location=(0, 0), **props):
+    node = tree.nodes.new(kind)
+    for key, value in props.items():
+        setattr(node, key, value)
+    node.location = location
+    return node
+
+
+def _textured_floor():
+    """Checker base colour, noise roughness through Map Range, a bump map from the same noise."""
+    mat = _principled("Checker Floor", roughness=0.3)
+    tree = mat.node_tree
+    bsdf = tree.nodes["Principled BSDF"]
+    checker = _node(tree, "ShaderNodeTexChecker", (-700, 300))
+    checker.inputs["Scale"].default_value = 8.0
+    checker.inputs["Color1"].default_value = (0.75, 0.72, 0.65, 1.0)
+    checker.inputs["Color2"].default_value = (0.12, 0.12, 0.14, 1.0)
+    noise = _node(tree, "ShaderNodeTexNoise", (-900, -100))
+    noise.inputs["Scale"].default_value = 3.0
+    remap = _node(tree, "ShaderNodeMapRange", (-600, -100))
+    remap.inputs["From Min"].default_value, remap.inputs["From Max"].default_value = 0.35, 0.65
+    remap.inputs["To Min"].default_value, remap.inputs["To Max"].default_value = 0.12, 0.5
+    bump = _node(tree, "ShaderNodeBump", (-400, -350))
+    bump.inputs["Strength"].default_value = 0.25
+    tree.links.new(checker.outputs["Color"], bsdf.inputs["Base Color"])
+    tree.links.new(noise.outputs["Fac"], remap.inputs["Value"])
+    tree.links.new(remap.outputs["Result"], bsdf.inputs["Roughness"])
+    tree.links.new(noise.outputs["Fac"], bump.inputs["Height"])
+    tree.links.new(bump.outputs["Normal"], bsdf.inputs["Normal"])
+    return mat
+
+
+def _image_metal():
+    """A metal whose base colour is an image through the UV map (Blender's generated colour grid: no file)."""
+    mat = _principled("Painted Metal", roughness=0.25, metallic=1.0)
+    tree = mat.node_tree
+    image = bpy.data.images.get("Painted Metal Grid") or bpy.data.images.new("Painted Metal Grid", 256, 256)
+    image.generated_type = "COLOR_GRID"
+    texture = _node(tree, "ShaderNodeTexImage", (-500, 300), image=image)
+    tree.links.new(texture.outputs["Color"], tree.nodes["Principled BSDF"].inputs["Base Color"])
+    return mat
+
+
+def _mixed_diffuse_glossy():
+    """Mix Shader of a Diffuse and a Glossy BSDF, its factor a wave texture."""
+    mat = bpy.data.materials.new("Diffuse Glossy Mix")
+    enable_nodes(mat)
+    tree = mat.node_tree
+    tree.nodes.remove(tree.nodes["Principled BSDF"])
+    diffuse = _node(tree, "ShaderNodeBsdfDiffuse", (-300, 200))
+    diffuse.inputs["Color"].default_value = (0.8, 0.35, 0.1, 1.0)
+    glossy = _node(tree, "ShaderNodeBsdfGlossy", (-300, -50))
+    glossy.inputs["Color"].default_value = (0.9, 0.9, 0.9, 1.0)
+    glossy.inputs["Roughness"].default_value = 0.3
+    wave = _node(tree, "ShaderNodeTexWave", (-600, 400))
+    wave.inputs["Scale"].default_value = 3.0
+    mix = _node(tree, "ShaderNodeMixShader", (0, 100))
+    tree.links.new(wave.outputs["Fac"], mix.inputs["Fac"])
+    tree.links.new(diffuse.outputs[0], mix.inputs[1])
+    tree.links.new(glossy.outputs[0], mix.inputs[2])
+    tree.links.new(mix.outputs[0], tree.nodes["Material Output"].inputs["Surface"])
+    return mat
+
+
+def _grouped_gold():
+    """A Principled BSDF inside a node group ('Brushed Gold'), reached through reroutes."""
+    group = bpy.data.node_groups.new("Brushed Gold", "ShaderNodeTree")
+    group.interface.new_socket("Shader", in_out="OUTPUT", socket_type="NodeSocketShader")
+    group.interface.new_socket("Roughness", in_out="INPUT", socket_type="NodeSocketFloat").default_value = 0.35
+    inputs = _node(group, "NodeGroupInput", (-500, 0))
+    outputs = _node(group, "NodeGroupOutput", (400, 0))
+    bsdf = _node(group, "ShaderNodeBsdfPrincipled", (0, 0))
+    bsdf.inputs["Base Color"].default_value = (1.0, 0.72, 0.3, 1.0)
+    bsdf.inputs["Metallic"].default_value = 1.0
+    reroute = _node(group, "NodeReroute", (250, 0))
+    group.links.new(inputs.outputs["Roughness"], bsdf.inputs["Roughness"])
+    group.links.new(bsdf.outputs[0], reroute.inputs[0])
+    group.links.new(reroute.outputs[0], outputs.inputs["Shader"])
+    mat = bpy.data.materials.new("Grouped Gold")
+    enable_nodes(mat)
+    tree = mat.node_tree
+    tree.nodes.remove(tree.nodes["Principled BSDF"])
+    node = _node(tree, "ShaderNodeGroup", (-200, 0), node_tree=group)
+    node.inputs["Roughness"].default_value = 0.35
+    reroute = _node(tree, "NodeReroute", (100, 0))
+    tree.links.new(node.outputs[0], reroute.inputs[0])
+    tree.links.new(reroute.outputs[0], tree.nodes["Material Output"].inputs["Surface"])
+    return mat
+
+
+def _glowing_sign():
+    """A glossy dielectric whose emission is a brick texture: emission on a baked surface, kept."""
+    mat = _principled("Glowing Sign", (0.1, 0.1, 0.1), roughness=0.3)
+    tree = mat.node_tree
+    bsdf = tree.nodes["Principled BSDF"]
+    brick = _node(tree, "ShaderNodeTexBrick", (-500, -200))
+    brick.inputs["Color1"].default_value = (1.0, 0.5, 0.1, 1.0)
+    brick.inputs["Color2"].default_value = (0.2, 0.6, 1.0, 1.0)
+    brick.inputs["Mortar"].default_value = (0.0, 0.0, 0.0, 1.0)
+    tree.links.new(brick.outputs["Color"], bsdf.inputs["Emission Color"])
+    bsdf.inputs["Emission Strength"].default_value = 1.5
+    return mat
+
+
+def build_materials(scene):
+    _mesh_object(scene, "Floor", _plane(6.0, 6.0), _textured_floor())
+    _mesh_object(scene, "Painted Sphere", _sphere(0.55), _image_metal(), Matrix.Translation((-1.3, 0.3, 0.55)))
+    glass = _principled("Glass", (1.0, 1.0, 1.0), roughness=0.05)
+    glass.node_tree.nodes["Principled BSDF"].inputs["Transmission Weight"].default_value = 1.0
+    _mesh_object(scene, "Glass Sphere", _sphere(0.4), glass, Matrix.Translation((0.9, -0.8, 0.4)))
+    _mesh_object(scene, "Mixed Cube", _box(0.8, 0.8, 0.8), _mixed_diffuse_glossy(),
+                 Matrix.Translation((0.4, 0.9, 0.4)) @ Matrix.Rotation(0.5, 4, "Z"))
+    _mesh_object(scene, "Gold Ball", _sphere(0.35), _grouped_gold(), Matrix.Translation((-0.2, -0.6, 0.35)))
+    _mesh_object(scene, "Sign", _box(1.6, 0.1, 0.8), _glowing_sign(), Matrix.Translation((0.0, 2.2, 0.6)))
+    leaf = _principled("Leaf Cut-out", (0.2, 0.5, 0.1), roughness=0.5)
+    checker = _node(leaf.node_tree, "ShaderNodeTexChecker", (-400, 0))
+    checker.inputs["Color1"].default_value, checker.inputs["Color2"].default_value = (1, 1, 1, 1), (0, 0, 0, 1)
+    leaf.node_tree.links.new(checker.outputs["Fac"], leaf.node_tree.nodes["Principled BSDF"].inputs["Alpha"])
+    _mesh_object(scene, "Leaf Card", _plane(0.8, 0.8), leaf,
+                 Matrix.Translation((1.8, 0.6, 0.5)) @ Matrix.Rotation(math.pi / 2, 4, "X"))
+    coated = _principled("Car Paint", (0.5, 0.02, 0.02), roughness=0.4)
+    coated.node_tree.nodes["Principled BSDF"].inputs["Coat Weight"].default_value = 1.0
+    _mesh_object(scene, "Coated Box", _box(0.5, 0.5, 0.5), coated, Matrix.Translation((-2.0, -1.0, 0.25)))
+    lamp_data = bpy.data.lights.new("Area Lamp", type="AREA")
+    lamp_data.energy, lamp_data.size = 250.0, 1.0
+    lamp = bpy.data.objects.new("Area Lamp", lamp_data)
+    lamp.location = (1.5, -1.5, 3.0)
+    lamp.rotation_euler = (math.radians(30), math.radians(20), 0.0)
+    scene.collection.objects.link(lamp)
+    _world(scene, hdri="interior", strength=0.6)
+    _camera(scene, (2.6, -4.4, 2.3), (-0.2, 0.3, 0.4), lens=30.0)
+
+
 # Modifier stacks per style: (asset node group, {input name: value}) after Generate Hair Curves.
 _HAIR_STYLE_STACKS = {
     "straight": [("Hair Curves Noise", {"Distance": 0.002, "Scale": 4.0})],
@@ -317,7 +455,8 @@ def build_hair(scene, style="wavy"):
     _camera(scene, (0.0, -0.75, 1.65), (0.0, 0.0, 1.62), lens=60.0)
 
 
-_BUILDERS = {"spheres": build_spheres, "room": build_room, "courtyard": build_courtyard, "hair": build_hair}
+_BUILDERS = {"spheres": build_spheres, "room": build_room, "courtyard": build_courtyard, "materials": build_materials,
+             "hair": build_hair}
 
 
 def build_demo_scene(name: str):

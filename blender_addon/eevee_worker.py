@@ -3,15 +3,24 @@
 EEVEE needs an OpenGL context; a background Blender or bpy as a module gets one (software EGL) in a fresh
 process, and keeping it out of the calling process leaves that session clean. Runs as either
     python blender_addon/eevee_worker.py FILE.blend SCENE OUT_DIR [--engines E1,E2] [--cameras C1,C2] [--samples N]
+                                         [--best-lighting] [--without-bake]
     blender -b FILE.blend --python blender_addon/eevee_worker.py -- FILE.blend SCENE OUT_DIR [...]
 Writes OUT_DIR/{ENGINE}_{k}.exr for camera k (the scene camera when none is named) and prints one line
 "SECONDS ENGINE k seconds" per render; the first EEVEE render includes compiling the scene's shaders.
+
+--best-lighting sets EEVEE up as well as Blender allows (DESIGN section 10): screen-space ray tracing and fast GI
+on, and a volume probe over the scene (capturing emission) and a sphere probe at its centre baked with Blender's own
+light-probe bake; with the bake, it lights what the bake leaves to the renderer (glass, cut-outs, coats).
+--without-bake also gives the baked slots their original materials back (the scene's bake record): EEVEE alone,
+the comparison a user makes. Only the worker's copy of the scene changes.
 """
 import argparse
+import json
 import sys
 import time
 
 import bpy
+from mathutils import Vector
 
 argv = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
 p = argparse.ArgumentParser()
@@ -21,13 +30,61 @@ p.add_argument("out")
 p.add_argument("--engines", default="BLENDER_EEVEE")
 p.add_argument("--cameras", default="")
 p.add_argument("--samples", type=int, default=16)
+p.add_argument("--best-lighting", action="store_true")
+p.add_argument("--without-bake", action="store_true")
 ns = p.parse_args(argv)
+
+BAKE_RECORD_KEY = "sglf_bake"  # blender_addon/apply.py: {object: {slot index: original material}}
+PROBE_MARGIN = 1.1  # the volume probe covers the scene's bounding box and 10 % more
+
+
+def restore_originals(scene):
+    """The original materials back in the slots the bake switched."""
+    for object_name, slots in json.loads(scene.get(BAKE_RECORD_KEY, "{}")).items():
+        obj = scene.objects.get(object_name)
+        for index, original in slots.items():
+            if obj is not None and int(index) < len(obj.material_slots) and original in bpy.data.materials:
+                obj.material_slots[int(index)].material = bpy.data.materials[original]
+
+
+def best_lighting(scene):
+    """Ray tracing on, a volume and a sphere probe baked (see the docstring)."""
+    eevee = scene.eevee
+    eevee.use_raytracing, eevee.ray_tracing_method = True, "SCREEN"
+    eevee.use_fast_gi = True
+    corners = [obj.matrix_world @ Vector(c) for obj in scene.objects if obj.type == "MESH" and not obj.hide_render
+               for c in obj.bound_box]
+    lo = Vector([min(c[i] for c in corners) for i in range(3)])
+    hi = Vector([max(c[i] for c in corners) for i in range(3)])
+    centre, half = (lo + hi) / 2, (hi - lo) / 2 * PROBE_MARGIN
+    volume_data = bpy.data.lightprobes.new("SGLF volume probe", "VOLUME")
+    volume_data.resolution_x = volume_data.resolution_y = volume_data.resolution_z = 8
+    if hasattr(volume_data, "capture_emission"):
+        volume_data.capture_emission = True
+    volume = bpy.data.objects.new("SGLF volume probe", volume_data)
+    volume.location, volume.scale = centre, [max(h, 1e-3) for h in half]
+    sphere_data = bpy.data.lightprobes.new("SGLF sphere probe", "SPHERE")
+    sphere_data.influence_distance = max(half) * 2
+    sphere = bpy.data.objects.new("SGLF sphere probe", sphere_data)
+    sphere.location = centre
+    for probe in (volume, sphere):
+        scene.collection.objects.link(probe)
+    view_layer = scene.view_layers[0]
+    start = time.perf_counter()
+    with bpy.context.temp_override(scene=scene, view_layer=view_layer, active_object=volume, object=volume,
+                                   selected_objects=[volume, sphere]):
+        bpy.ops.object.lightprobe_cache_bake(subset="ALL")
+    print(f"PROBE BAKE SECONDS {time.perf_counter() - start:.3f}", flush=True)
 if bpy.data.filepath != ns.blend:
     bpy.ops.wm.open_mainfile(filepath=ns.blend)
 scene = bpy.data.scenes[ns.scene]
 if bpy.context.window is not None:
     bpy.context.window.scene = scene
 scene.render.image_settings.file_format, scene.render.image_settings.color_depth = "OPEN_EXR", "32"
+if ns.without_bake:
+    restore_originals(scene)
+if ns.best_lighting or ns.without_bake:
+    best_lighting(scene)
 cameras = [bpy.data.objects[name] for name in ns.cameras.split(",") if name] or [scene.camera]
 for engine in ns.engines.split(","):
     scene.render.engine = engine

@@ -8,8 +8,11 @@ Cycles evaluates through the same node group EEVEE uses (emission only), at the 
 because surfaces the bake leaves alone (rough ones) are still path traced.
 Metrics on tone-mapped images (shaders/image_metrics.py): RMSE, PSNR, FLIP; pictures reference | bake | FLIP.
 EEVEE, the engine the bake is for, renders the same views in a separate process (blender_addon/eevee_worker.py;
-it needs an OpenGL context): its error against the reference, its difference from Cycles' evaluation of the
-same nodes, its first-render time (shader compilation included) and pictures reference | EEVEE | FLIP.
+it needs an OpenGL context), with ray tracing and baked light probes lighting what the bake leaves to the renderer:
+its error against the reference, its difference from Cycles' evaluation of the same nodes, its first-render time
+(shader compilation and the probe bake included) and pictures reference | EEVEE | FLIP. EEVEE without the bake, set
+up the same way, is what a user compares with (errors.eevee_without_bake; pictures reference | EEVEE alone | EEVEE
+with the bake).
 Nothing of the scene changes: temporary cameras and material swaps are undone before returning.
 The bake's own evaluation uses reference_samples_for(settings).
 """
@@ -38,10 +41,13 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.exr_io import read_exr
     from .render import compute_device, quiet_stdout, render_still
     from .scene_analysis import active_scene, empty_node_material, principled_surface
+    from .surface_shaders import BAKED_BSDFS, KEPT_SHADERS, LeafInputs, copy_material, leaves, rewrite_surface
 except ImportError:  # bpy as a module with the repository on sys.path
     from blender_addon.apply import BAKE_RECORD_KEY, baked_slots
     from blender_addon.render import compute_device, quiet_stdout, render_still
     from blender_addon.scene_analysis import active_scene, empty_node_material, principled_surface
+    from blender_addon.surface_shaders import (BAKED_BSDFS, KEPT_SHADERS, LeafInputs, copy_material, leaves,
+                                               rewrite_surface)
     from shaders.exr_io import read_exr
     from shaders.bake_plan import BakeInputError
     from shaders.bake_report import save_png, update_report
@@ -118,7 +124,7 @@ def surface_images(scene, camera, path) -> tuple[np.ndarray, np.ndarray, list[st
     (H, W) roughness of the original material (NaN where the world shows), (H, W) index into the returned material
     names (-1 where the world shows or a pixel mixes materials), and those names."""
     record = json.loads(scene.get(BAKE_RECORD_KEY, "{}"))
-    emissions, names, undo, created = {}, [], [], []
+    emissions, names, undo, created, created_groups = {}, [], [], [], []
     try:
         for obj in scene.objects:
             for index, slot in enumerate(getattr(obj, "material_slots", [])):
@@ -126,14 +132,10 @@ def surface_images(scene, camera, path) -> tuple[np.ndarray, np.ndarray, list[st
                 original = bpy.data.materials.get(original_name) if original_name else slot.material
                 key = original.name if original is not None else ""
                 if key not in emissions:
-                    material = empty_node_material("SGLF roughness")
-                    created.append(material)
-                    nodes = material.node_tree.nodes
-                    emission = nodes.new("ShaderNodeEmission")
-                    value = float(principled_surface(original)["roughness"]) if original is not None else 1.0
                     names.append(key or "(no material)")
-                    emission.inputs["Color"].default_value = (value, float(len(names)), 0.0, 1.0)
-                    material.node_tree.links.new(emission.outputs[0], nodes["Material Output"].inputs["Surface"])
+                    material, groups = _surface_id_material(original, float(len(names)))
+                    created.append(material)
+                    created_groups.extend(groups)
                     emissions[key] = material
                 undo.append((slot, slot.material))
                 slot.material = emissions[key]
@@ -151,6 +153,9 @@ def surface_images(scene, camera, path) -> tuple[np.ndarray, np.ndarray, list[st
             slot.material = material
         for material in created:
             bpy.data.materials.remove(material)
+        for group in reversed(created_groups):
+            if group.users == 0:
+                bpy.data.node_groups.remove(group)
     value, number, alpha = (pixels[..., c].astype(np.float64) for c in range(3))
     covered = alpha > 0.5
     roughness = np.where(covered, value / np.maximum(alpha, 1e-6), np.nan)
@@ -158,6 +163,30 @@ def surface_images(scene, camera, path) -> tuple[np.ndarray, np.ndarray, list[st
     # the pixel filter blends neighbours' emissions at edges: a pixel counts for a material only when it is whole
     whole = (alpha > 0.999) & (np.abs(number - np.round(number)) < 1e-3)
     return roughness, np.where(whole, np.round(number) - 1, -1).astype(np.int64), names
+
+
+def _surface_id_material(original, number: float):
+    """An emission material showing (roughness, number, 0): a copy of `original` whose baked BSDFs emit their own
+    per-pixel roughness (textures included; Mix Shaders blend it), or, for a material without one, its constant."""
+    if original is not None and leaves(original):
+        material = copy_material(original, " (SGLF roughness)")
+
+        def build_leaf(tree, node):
+            inputs = LeafInputs(tree, node)
+            combine = inputs._new("ShaderNodeCombineColor")
+            inputs.feed(combine.inputs[0], inputs.roughness() if node.type in BAKED_BSDFS else 1.0)
+            combine.inputs[1].default_value = number
+            return inputs.emission_of(combine.outputs[0])
+
+        groups = rewrite_surface(material, build_leaf, suffix=" (SGLF roughness)", kinds=BAKED_BSDFS | KEPT_SHADERS)
+        return material, groups
+    material = empty_node_material("SGLF roughness")
+    nodes = material.node_tree.nodes
+    emission = nodes.new("ShaderNodeEmission")
+    value = float(principled_surface(original)["roughness"]) if original is not None else 1.0
+    emission.inputs["Color"].default_value = (value, number, 0.0, 1.0)
+    material.node_tree.links.new(emission.outputs[0], nodes["Material Output"].inputs["Surface"])
+    return material, []
 
 
 def _masked_errors(flip_maps, masks, squared_error_maps=None) -> dict:
@@ -208,15 +237,19 @@ def shader_errors(log: str) -> list[str]:
     return list(dict.fromkeys(f"{m['material'].strip()}: {m['message'].strip()}" for m in SHADER_ERROR.finditer(log)))
 
 
-def render_eevee(scene, camera_names, work_dir: Path, samples: int = EEVEE_SAMPLES, timeout_s: float = 900.0):
+def render_eevee(scene, camera_names, work_dir: Path, samples: int = EEVEE_SAMPLES, timeout_s: float = 900.0,
+                 without_bake: bool = False, best_lighting: bool = False):
     """EEVEE renders of the scene as it is now, one per camera, by a separate process working on a saved copy:
     ([(H, W, 3) images], [seconds per render], [materials whose shaders failed to compile, with the reason]).
-    The first render's time includes shader compilation."""
+    The first render's time includes shader compilation. without_bake: EEVEE as well as Blender allows without the
+    bake (original materials, ray tracing, baked volume and sphere probes: eevee_worker.py); best_lighting: that
+    lighting for the scene as it is (what the bake leaves to the renderer gets it)."""
     blend = work_dir / "eevee_views.blend"
     with active_scene(scene), quiet_stdout():
         bpy.ops.wm.save_as_mainfile(filepath=str(blend), copy=True)
     arguments = [str(blend), scene.name, str(work_dir), "--cameras", ",".join(camera_names),
-                 "--samples", str(samples)]
+                 "--samples", str(samples)] + (["--without-bake"] if without_bake else []) \
+        + (["--best-lighting"] if best_lighting else [])
     if bpy.app.binary_path:  # inside Blender: a background Blender runs the worker
         command = [bpy.app.binary_path, "-b", "--factory-startup", "--python", str(EEVEE_WORKER), "--", *arguments]
     else:  # bpy as a module: the same Python runs it
@@ -227,6 +260,9 @@ def render_eevee(scene, camera_names, work_dir: Path, samples: int = EEVEE_SAMPL
         tail = (out.stderr or out.stdout).strip().splitlines()[-1:] or ["no output"]
         raise RuntimeError(f"EEVEE render process failed ({out.returncode}): {tail[0]}")
     seconds = [float(m.group(1)) for m in re.finditer(r"^SECONDS BLENDER_EEVEE \d+ ([0-9.]+)$", out.stdout, re.M)]
+    probe_bake = re.search(r"^PROBE BAKE SECONDS ([0-9.]+)$", out.stdout, re.M)
+    if probe_bake and seconds:  # the probe bake compiled the shaders the first render would have
+        seconds[0] += float(probe_bake.group(1))
     images = [read_exr(work_dir / f"BLENDER_EEVEE_{k}.exr", channels=["R", "G", "B"])[0].astype(np.float64)
               for k in range(len(camera_names))]
     return images, seconds, shader_errors(out.stdout + "\n" + out.stderr)
@@ -318,7 +354,8 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = EVALUATE_VIEWS, resolut
                 results.append({"view": camera.name, "rmse": rmse(ref_ldr, ours_ldr), "psnr": psnr(ref_ldr, ours_ldr),
                                 "flip": mean_flip, "reference_noise_rmse": noise, "picture": picture})
             if with_eevee:
-                eevee = _evaluate_eevee(scene, cameras, references, tests, out_dir, Path(tmp), roughness_maps)
+                eevee = _evaluate_eevee(scene, cameras, references, tests, out_dir, Path(tmp), roughness_maps,
+                                        (material_maps, material_names))
     finally:
         for camera, temporary in cameras:
             if temporary:
@@ -341,17 +378,20 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = EVALUATE_VIEWS, resolut
         errors["flip_by_material"][name]["reference_noise_flip"] = entry["flip"]
         errors["flip_by_material"][name]["reference_noise_rmse"] = entry["rmse"]
     errors["eevee"] = eevee
+    errors["eevee_without_bake"] = eevee.pop("without_bake", None) or {}
     errors["reference_samples"], errors["test_samples"] = reference_samples, test_samples
     seconds = time.perf_counter() - start
     update_report(out_dir, plan.stage_hash("capture"), timings_s={"evaluate": seconds}, errors=errors)
     return errors
 
 
-def _evaluate_eevee(scene, cameras, references, cycles_tests, out_dir: Path, work_dir: Path, roughness_maps) -> dict:
+def _evaluate_eevee(scene, cameras, references, cycles_tests, out_dir: Path, work_dir: Path, roughness_maps,
+                    materials) -> dict:
     """EEVEE against the reference and against Cycles' evaluation of the same baked nodes; pictures per view.
     A failure to render with EEVEE (no OpenGL on the machine) is reported, not raised."""
     try:
-        images, seconds, failed = render_eevee(scene, [camera.name for camera, _ in cameras], work_dir)
+        images, seconds, failed = render_eevee(scene, [camera.name for camera, _ in cameras], work_dir,
+                                               best_lighting=True)
     except (RuntimeError, OSError, subprocess.TimeoutExpired) as exc:
         return {"error": str(exc)}
     views, flip_maps, parity_maps = [], [], []
@@ -370,8 +410,36 @@ def _evaluate_eevee(scene, cameras, references, cycles_tests, out_dir: Path, wor
     summary = {key: float(np.mean([v[key] for v in views])) for key in ("flip", "psnr", "rmse", "flip_vs_cycles_bake")}
     # Surfaces the bake leaves alone (rough materials with --rough-materials renderer) are lit by EEVEE itself,
     # which has no light from emissive meshes without its ray tracing: parity with Cycles' evaluation is per class.
+    summary["flip_by_material"] = flip_by_material(flip_maps, *materials)
+    summary["without_bake"] = _evaluate_eevee_without_bake(scene, cameras, references, images, out_dir, work_dir,
+                                                           materials)
     summary.update(views=views, samples=EEVEE_SAMPLES, flip_by_roughness=flip_by_roughness(flip_maps, roughness_maps),
                    flip_vs_cycles_bake_by_roughness=flip_by_roughness(parity_maps, roughness_maps),
                    shader_errors=failed, first_render_s=seconds[0] if seconds else None,
                    later_render_s=float(np.mean(seconds[1:])) if len(seconds) > 1 else None)
     return summary
+
+
+def _evaluate_eevee_without_bake(scene, cameras, references, baked_images, out_dir: Path, work_dir: Path,
+                                materials) -> dict:
+    """EEVEE without the bake, set up as well as Blender allows (render_eevee without_bake), against the same
+    reference; pictures per view: Cycles reference | EEVEE alone | EEVEE with the bake. A failure is reported."""
+    try:
+        images, seconds, failed = render_eevee(scene, [camera.name for camera, _ in cameras], work_dir,
+                                               without_bake=True)
+    except (RuntimeError, OSError, subprocess.TimeoutExpired) as exc:
+        return {"error": str(exc)}
+    views, flip_maps = [], []
+    for k, (image, reference, baked) in enumerate(zip(images, references, baked_images)):
+        ref_ldr, alone_ldr, baked_ldr = tonemap(reference), tonemap(image), tonemap(baked)
+        mean_flip, flip_map = flip(ref_ldr, alone_ldr)
+        flip_maps.append(flip_map)
+        picture = f"evaluate_view{k}_three_way.png"
+        gap = np.ones((ref_ldr.shape[0], 2, 3))
+        save_png(out_dir / picture, np.concatenate([ref_ldr, gap, alone_ldr, gap, baked_ldr], axis=1), min_width=0)
+        views.append({"flip": mean_flip, "psnr": psnr(ref_ldr, alone_ldr), "rmse": rmse(ref_ldr, alone_ldr),
+                      "picture": picture})
+    return {"flip": float(np.mean([v["flip"] for v in views])), "psnr": float(np.mean([v["psnr"] for v in views])),
+            "views": views, "flip_by_material": flip_by_material(flip_maps, *materials), "setup": "original materials; screen-space ray tracing and fast GI; a volume probe over "
+                                     "the scene (emission captured) and a sphere probe, baked by Blender",
+            "shader_errors": failed, "render_s": seconds}

@@ -47,10 +47,10 @@ try:  # inside the installed extension the numpy side is a sibling package
                                             tile_is_finished, tile_samples, write_index)
     from ..shaders.texel_maps import adjacent_texel_pairs, channels, read_texel_maps, texels_of_objects
     from .capture import scene_bvh
-    from .scene_analysis import active_scene, remove_datablocks
+    from .scene_analysis import active_scene, quiet_stdout, remove_datablocks
 except ImportError:  # bpy as a module with the repository on sys.path
     from blender_addon.capture import scene_bvh
-    from blender_addon.scene_analysis import active_scene, remove_datablocks
+    from blender_addon.scene_analysis import active_scene, quiet_stdout, remove_datablocks
     from shaders.bake_plan import BakeInputError, drive
     from shaders.bake_report import save_png, update_report
     from shaders.env_visibility import env_visibility
@@ -127,26 +127,6 @@ class RenderResult:
 
 def _noop_progress(fraction, message):
     pass
-
-
-@contextlib.contextmanager
-def quiet_stdout():
-    """Cycles logs every render to the process's stdout (fd 1); machine-readable --json output and the
-    progress bar must not be interleaved with it. Errors still reach stderr."""
-    sys.stdout.flush()
-    try:
-        saved = os.dup(1)
-    except OSError:  # no real fd 1 (some embedded consoles): nothing to silence
-        yield
-        return
-    try:
-        with open(os.devnull, "wb") as devnull:
-            os.dup2(devnull.fileno(), 1)
-            yield
-    finally:
-        sys.stdout.flush()
-        os.dup2(saved, 1)
-        os.close(saved)
 
 
 def _import_oslquery():

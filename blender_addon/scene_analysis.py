@@ -5,6 +5,8 @@ Reads the scene only; never changes it.
 from __future__ import annotations
 
 import contextlib
+import os
+import sys
 
 import bpy
 import numpy as np
@@ -12,7 +14,10 @@ import numpy as np
 try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.bake_plan import (GLOSSY_ROUGHNESS_MAX, ROUGH_METALLIC_MAX, BakeInputError, BakePlan, BakeSettings,
                                      EnvironmentPlan, MaterialPlan, ObjectPlan, auto_sg_count)
+    from .surface_shaders import COPY_KEY, LeafInputs, NeedsNodes, analyse_surface, input_constant, leaves
 except ImportError:  # bpy as a module with the repository on sys.path
+    from blender_addon.surface_shaders import (COPY_KEY, LeafInputs, NeedsNodes, analyse_surface, input_constant,
+                                               leaves)
     from shaders.bake_plan import (GLOSSY_ROUGHNESS_MAX, ROUGH_METALLIC_MAX, BakeInputError, BakePlan, BakeSettings,
                                    EnvironmentPlan, MaterialPlan, ObjectPlan, auto_sg_count)
 
@@ -52,27 +57,12 @@ def empty_node_material(name: str):
     return material
 
 
-def _surface_bsdf(material):
-    if not uses_nodes(material):
-        return None
-    output = next((n for n in material.node_tree.nodes if n.type == "OUTPUT_MATERIAL" and n.is_active_output), None)
-    if output is None or not output.inputs["Surface"].is_linked:
-        return None
-    node = output.inputs["Surface"].links[0].from_node
-    return node if node.type == "BSDF_PRINCIPLED" else None
-
-
 def _input_value(node, name, default):
-    socket = node.inputs.get(name)
-    if socket is None:
-        return default, False
-    if socket.is_linked:
-        return default, True
-    value = socket.default_value
-    return (tuple(value) if hasattr(value, "__len__") else float(value)), False
+    value, linked = input_constant(node, name, default)
+    return (default if value is None else value), linked
 
 
-BAKED_COPY_KEY = "sglf_original"  # set by the apply stage on its copies; the plan looks through them
+BAKED_COPY_KEY = COPY_KEY  # set by the apply stage on its copies; the plan looks through them
 
 
 def unbaked(material):
@@ -83,72 +73,96 @@ def unbaked(material):
 
 
 def analyse_material(material, settings: BakeSettings) -> MaterialPlan:
+    """The plan of one material from its surface (surface_shaders.analyse_surface): baked BSDFs get SGs (glossy),
+    an irradiance lightmap (rough dielectrics, Diffuse BSDFs) or nothing; a surface with anything the bake does not
+    model is left to the renderer with the reason. A textured roughness makes the material glossy here; its SGs per
+    texel follow the roughness the capture stage measures over the lightmap (capture.measure_surfaces)."""
     material = unbaked(material)
     name = material.name if material else "(no material)"
-    bsdf = _surface_bsdf(material)
-    if bsdf is None:
-        reason = ("no material: Blender renders it diffuse grey" if material is None
-                  else "surface is not a Principled BSDF: treated as diffuse")
-        return MaterialPlan(name, 1.0, 0.0, False, 0, reason)
-    roughness, textured = _input_value(bsdf, "Roughness", 0.5)
-    metallic, _ = _input_value(bsdf, "Metallic", 0.0)
-    if textured:
-        return MaterialPlan(name, float(roughness), float(metallic), True,
-                            settings.sg_count or 16, "roughness is textured: treated as glossy, the most SGs")
-    rough_metal = roughness >= GLOSSY_ROUGHNESS_MAX and metallic >= ROUGH_METALLIC_MAX
-    glossy = roughness < GLOSSY_ROUGHNESS_MAX or rough_metal
+    if material is None:
+        return MaterialPlan(name, 1.0, 0.0, False, 0, "no material: Blender renders it diffuse grey")
+    surface = analyse_surface(material)
+    if surface.renderer_reasons:
+        return MaterialPlan(name, 1.0, 0.0, False, 0,
+                            "left to the renderer: " + "; ".join(surface.renderer_reasons))
+    if not surface.leaves:
+        return MaterialPlan(name, 1.0, 0.0, False, 0,
+                            "emission only: not baked, its emission is the light it shows" if surface.emissive
+                            else "no BSDF in its surface (holdout): not baked")
     most = settings.sg_count or 16
+    specular = [leaf for leaf in surface.leaves if leaf.specular]
+    textured = sorted({n for leaf in surface.leaves for n in leaf.linked})
+    note = f"; textured inputs ({', '.join(textured)}) read per pixel" if textured else ""
+    if any(leaf.roughness is None for leaf in specular):
+        return MaterialPlan(name, 0.0, min((0.5 if leaf.metallic is None else leaf.metallic) for leaf in surface.leaves),
+                            True, most,
+                            f"roughness is textured: glossy, up to {most} SGs per texel as the roughness measured over "
+                            "its lightmap needs" + note, textured=textured)
+    roughness = min((leaf.roughness for leaf in specular), default=1.0)
+    # The material is as metallic as its least metallic BSDF (a Diffuse beside a Glossy is not a metal); a textured
+    # metallic counts as half.
+    metallic = min((0.5 if leaf.metallic is None else leaf.metallic for leaf in surface.leaves), default=0.0)
+    rough_metal = roughness >= GLOSSY_ROUGHNESS_MAX and metallic >= ROUGH_METALLIC_MAX
+    glossy = bool(specular) and (roughness < GLOSSY_ROUGHNESS_MAX or rough_metal)
     count = 0 if not glossy else most if settings.uniform_sg_count else auto_sg_count(roughness, most)
     irradiance_only = False
+    kinds = sorted({leaf.node_type for leaf in surface.leaves} - {"BSDF_PRINCIPLED"})
+    what = f"roughness {roughness:.2f}" if specular else "diffuse BSDF"
     if rough_metal:
         reason = (f"roughness {roughness:.2f} >= {GLOSSY_ROUGHNESS_MAX} but metallic {metallic:.2f}: "
                   "all its light is specular, so light-field SGs")
     elif glossy:
         reason = f"roughness {roughness:.2f} < {GLOSSY_ROUGHNESS_MAX}: glossy, needs light-field SGs"
-    elif _is_emissive(material):
-        reason = f"roughness {roughness:.2f}, emissive: not baked, its emission is the light it shows"
+    elif surface.emissive:
+        reason = f"{what}, emissive: not baked, its emission is the light it shows"
     elif settings.rough_materials == "irradiance":
         irradiance_only = True
-        reason = (f"roughness {roughness:.2f} >= {GLOSSY_ROUGHNESS_MAX}: irradiance lightmap, no SGs (its lobe is "
-                  "wider than ~40 deg; the specular is the split-sum estimate of the irradiance's)")
+        reason = (f"{what}: irradiance lightmap, no SGs (its lobe is wider than ~40 deg; the specular is the "
+                  "split-sum estimate of the irradiance's)" if specular else f"{what}: irradiance lightmap, no SGs")
     else:
-        reason = (f"roughness {roughness:.2f} >= {GLOSSY_ROUGHNESS_MAX}: not baked (rough materials: renderer), "
-                  "the renderer's own lighting; in EEVEE only its irradiance volumes give it indirect light")
+        reason = (f"{what}: not baked (rough materials: renderer), the renderer's own lighting; in EEVEE only its "
+                  "irradiance volumes give it indirect light")
     if glossy and count < most:
         reason += f"; {count} SGs are within the error budget at this roughness"
-    return MaterialPlan(name, float(roughness), float(metallic), glossy, count, reason, irradiance_only)
+    if kinds:
+        reason += "; " + ", ".join(k.replace("BSDF_", "").lower() for k in kinds) + " BSDF"
+    return MaterialPlan(name, float(roughness), float(metallic), glossy, count, reason + note, irradiance_only,
+                        textured=textured)
 
 
 def principled_surface(material) -> dict:
-    """Base colour, roughness, metallic and normal-incidence Fresnel F0 of a material's Principled BSDF,
-    as Blender 4+ defines them: F0 = mix(((ior-1)/(ior+1))^2 * 2 * specular_level * tint, base, metallic).
-    Materials without one render as Blender's default grey diffuse."""
-    bsdf = _surface_bsdf(material)
-    if bsdf is None:
+    """Base colour, roughness, metallic and normal-incidence Fresnel F0 of a material's first baked BSDF where they
+    are constants, as Blender 4+ defines them: F0 = mix(((ior-1)/(ior+1))^2 * 2 * specular_level * tint, base,
+    metallic). A linked input reads as Blender's default for it (base 0.8 grey, roughness 0.5, metallic 0) and
+    'textured' lists the linked inputs: the capture stage measures those per texel. Materials without a baked BSDF
+    render as Blender's default grey diffuse."""
+    found = leaves(unbaked(material))
+    if not found:
         return {"base_color": [0.8, 0.8, 0.8], "roughness": 1.0, "metallic": 0.0, "f0": [0.04, 0.04, 0.04],
-                "textured": False}
-    base, linked_base = _input_value(bsdf, "Base Color", (0.8, 0.8, 0.8, 1.0))
-    roughness, linked_rough = _input_value(bsdf, "Roughness", 0.5)
-    metallic, linked_metal = _input_value(bsdf, "Metallic", 0.0)
-    ior, _ = _input_value(bsdf, "IOR", 1.5)
-    level, _ = _input_value(bsdf, "Specular IOR Level", 0.5)
-    tint, _ = _input_value(bsdf, "Specular Tint", (1.0, 1.0, 1.0, 1.0))
-    base = np.clip(np.asarray(base[:3], float), 0.0, 1.0)
-    dielectric = min(((ior - 1) / (ior + 1)) ** 2 * 2 * level, 1.0) * np.clip(np.asarray(tint[:3], float), 0, 1)
-    metallic = float(np.clip(metallic, 0.0, 1.0))
-    f0 = (1 - metallic) * dielectric + metallic * base
-    return {"base_color": [float(c) for c in base], "roughness": float(np.clip(roughness, 0.0, 1.0)),
-            "metallic": metallic, "f0": [float(c) for c in f0],
-            "textured": bool(linked_base or linked_rough or linked_metal)}
+                "textured": []}
+    node = found[0][1]
+    values = LeafInputs(None, node)
+
+    def constant(quantity, default):
+        try:
+            value = quantity()
+        except NeedsNodes:
+            return default
+        return default if hasattr(value, "is_linked") else value
+
+    base = np.clip(np.asarray(constant(values.base_colour, (0.8, 0.8, 0.8))[:3], float), 0.0, 1.0)
+    roughness = float(np.clip(constant(values.roughness, 0.5), 0.0, 1.0))
+    metallic = float(np.clip(constant(values.metallic, 0.0), 0.0, 1.0))
+    f0 = constant(values.f0, None)
+    if f0 is None:
+        f0 = (1 - metallic) * np.full(3, 0.04) + metallic * base
+    textured = sorted(s.name for s in node.inputs if s.type != "SHADER" and s.enabled and s.is_linked)
+    return {"base_color": [float(c) for c in base], "roughness": roughness, "metallic": metallic,
+            "f0": [float(c) for c in np.clip(np.asarray(f0, float), 0.0, 1.0)], "textured": textured}
 
 
 def _is_emissive(material) -> bool:
-    bsdf = _surface_bsdf(material)
-    if bsdf is None:
-        return False
-    strength, linked_s = _input_value(bsdf, "Emission Strength", 0.0)
-    color, linked_c = _input_value(bsdf, "Emission Color", (0, 0, 0, 1))
-    return (linked_s or strength > 0) and (linked_c or max(color[:3]) > 0)
+    return material is not None and material.node_tree is not None and analyse_surface(material).emissive
 
 
 def loop_triangle_arrays(mesh):
@@ -254,6 +268,26 @@ def active_scene(scene):
             window.scene = previous
 
 
+@contextlib.contextmanager
+def quiet_stdout():
+    """Cycles logs every render to the process's stdout (fd 1); machine-readable --json output and the
+    progress bar must not be interleaved with it. Errors still reach stderr."""
+    sys.stdout.flush()
+    try:
+        saved = os.dup(1)
+    except OSError:  # no real fd 1 (some embedded consoles): nothing to silence
+        yield
+        return
+    try:
+        with open(os.devnull, "wb") as devnull:
+            os.dup2(devnull.fileno(), 1)
+            yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
 def build_plan(scene, settings: BakeSettings) -> BakePlan:
     """Analyse `scene` and decide what to bake. Raises BakeInputError with one clear message."""
     with active_scene(scene) as depsgraph:
@@ -285,11 +319,14 @@ def _build_plan(scene, settings: BakeSettings, depsgraph) -> BakePlan:
         texels = int(np.ceil(area * settings.texel_density**2)) if baked else 0
         reason = "; ".join(([f"glossy material(s): {', '.join(glossy)}"] if glossy else [])
                            + ([f"irradiance lightmap: {', '.join(lightmapped)}"] if lightmapped else [])) \
-            or "no glossy or lightmapped material: not baked, left to the renderer's own lighting"
+            or "no glossy or lightmapped material: not baked, left to the renderer's own lighting (" + \
+            "; ".join(f"{mp.name}: {mp.reason}" for mp in mat_plans) + ")"
         objects.append(ObjectPlan(obj.name, round(area, 6), texels, baked, mat_plans, reason))
     if not any(o.bake_lightfield for o in objects):
+        left = sorted({mp.name for o in objects for mp in o.materials if mp.reason.startswith("left to the renderer")})
         raise BakeInputError("nothing to bake: no mesh has a glossy material (roughness below "
-                             f"{GLOSSY_ROUGHNESS_MAX}) or a rough one to lightmap; the light field would not be used")
+                             f"{GLOSSY_ROUGHNESS_MAX}) or a rough one to lightmap; the light field would not be used"
+                             + (f" (left to the renderer: {', '.join(left)}; see the plan for why)" if left else ""))
     lamps = [o.name for o in visible if o.type == "LIGHT" and o.data.energy > 0]
     hair = [o.name for o in visible if o.type == "CURVES"]
     environment = analyse_environment(scene)

@@ -28,6 +28,11 @@ writes them to bench_out/bench.json.
             reflected-radiance error of each sphere's texels at its roughness, split into the SGs' fit and the
             closed form's error. R = 32 (Production's) with the presets' lobe refit unless --encoder-* say
             otherwise; the CNN trained 3 times (seeds; --quick: once) and averaged. Target: >= 2x lower RMSE.
+  materials demo:materials (textured, bump-mapped, mixed, grouped and emissive materials beside glass, alpha and coat
+            left to the renderer) at Draft and Preview (--quick: Draft): FLIP of EEVEE with the bake and of EEVEE
+            without it (ray tracing, baked volume and sphere probes) against the Cycles reference, overall and per
+            material; and the same scene with every texture replaced by its mean over the surface (measured by
+            Cycles). Targets: EEVEE without the bake / with it >= 2; textured / mean-textured bake FLIP <= 1.2.
   stability the numerical-stability sweep: `spheres` at roughness 0 and 1, a 1e5 emitter, no light, scale 1e4 and
             1e-3, each baked and evaluated: every output finite, and the errors.
   hair      the hair filter (headless/bench_hair.py): onnxruntime time at 1024^2, PSNR/FLIP against Cycles
@@ -48,7 +53,8 @@ from shaders.bake_plan import (  # noqa: E402
     LOBE_REFIT_STEPS, PRESETS, BakeInputError, BakeSettings, write_json_atomic)
 
 CAPTURE_TARGET_S = 10.0
-SECTIONS = ("capture", "render", "train", "sgcount", "encoders", "knobs", "apply", "presets", "stability", "hair")
+SECTIONS = ("capture", "render", "train", "sgcount", "encoders", "knobs", "apply", "presets", "materials", "stability",
+            "hair")
 
 
 def bench_capture(scenes, presets, out_root: Path) -> list[dict]:
@@ -416,6 +422,7 @@ def bench_presets(out_root: Path, scenes, presets, earlier_rows=(), device: str 
                                                for k, v in errors["flip_by_roughness"].items()},
                          "flip_by_material": {k: round(v["flip"], 4) for k, v in errors["flip_by_material"].items()},
                          "eevee_flip": None if "flip" not in eevee else round(eevee["flip"], 4),
+                         "eevee_without_bake_flip": _rounded((errors.get("eevee_without_bake") or {}).get("flip")),
                          "reference_noise_rmse": round(errors["reference_noise_rmse"], 4),
                          "reference_noise_flip_by_roughness": {
                              k: None if v["flip"] is None else round(v["flip"], 4)
@@ -424,9 +431,111 @@ def bench_presets(out_root: Path, scenes, presets, earlier_rows=(), device: str 
             row = rows[-1]
             shares = ", ".join(f"{k} {100 * v:.0f}%" for k, v in row["stage_share"].items())
             print(f"preset {preset:<10} {name:<10} bake {row['bake_s']:7.1f} s ({shares}); FLIP {row['flip']:.4f} "
-                  f"(EEVEE {row['eevee_flip']}), by roughness {row['flip_by_roughness']}, reference noise floor "
+                  f"(EEVEE {row['eevee_flip']}, EEVEE without the bake {row['eevee_without_bake_flip']}), by roughness {row['flip_by_roughness']}, reference noise floor "
                   f"{row['reference_noise_flip_by_roughness']}, by material {row['flip_by_material']}")
     rows.sort(key=lambda r: (r["scene"], _device_of(r), list(PRESETS).index(r["preset"])))
+    return rows
+
+
+def _texture_means(scene, out_dir: Path) -> dict:
+    """Material name -> {(node name, input identifier): mean RGB} of every link into a BSDF, Mix Shader or Emission
+    input of the material's own tree, over the texels of the first baked object using it (a captured bake)."""
+    import numpy as np
+
+    from blender_addon.capture import ObjectTile
+    from blender_addon.scene_analysis import unbaked
+    from blender_addon.surface_probe import mean_of_links
+    from blender_addon.surface_shaders import BAKED_BSDFS
+    from shaders.texel_maps import channels, read_texel_maps
+
+    atlas, info = read_texel_maps(out_dir)
+    object_ids = channels(atlas, "object_id").astype(np.int64)
+    means = {}
+    for entry in info["objects"]:
+        tile = ObjectTile(**entry)
+        obj = scene.objects[tile.name]
+        for slot in obj.material_slots:
+            material = unbaked(slot.material)
+            if material is None or material.name in means:
+                continue
+            inputs = [(node.name, socket.identifier) for node in material.node_tree.nodes
+                      if node.type in BAKED_BSDFS | {"MIX_SHADER", "EMISSION"}
+                      for socket in node.inputs if socket.type != "SHADER" and socket.is_linked]
+            if inputs:
+                means[material.name] = mean_of_links(scene, obj, tile, object_ids, material, inputs)
+    return means
+
+
+def _replace_textures_with_means(scene, means: dict) -> int:
+    """Unlink each measured input and give it its mean (a Normal input unlinked is the surface's own normal, the mean
+    of a bump or normal map's tilt). Returns the inputs replaced."""
+    from blender_addon.scene_analysis import unbaked
+
+    replaced = 0
+    materials = {unbaked(s.material) for o in scene.objects for s in getattr(o, "material_slots", []) if s.material}
+    for material in materials:
+        for (node_name, identifier), value in means.get(material.name, {}).items():
+            socket = next(s for s in material.node_tree.nodes[node_name].inputs if s.identifier == identifier)
+            for link in list(socket.links):
+                material.node_tree.links.remove(link)
+            if socket.type == "RGBA":
+                socket.default_value = (*value, 1.0)
+            elif socket.type == "VALUE":
+                socket.default_value = value[0]
+            replaced += 1
+    return replaced
+
+
+def bench_materials(out_root: Path, presets=("draft", "preview")) -> list[dict]:
+    """demo:materials with its textures and with each texture replaced by its mean, per preset: the bake's FLIP in
+    Cycles and EEVEE, EEVEE without the bake, per material (see the module docstring for the targets)."""
+    import json
+
+    from blender_addon.demo_scenes import build_demo_scene
+    from blender_addon.pipeline import BakeJob
+
+    rows = []
+    for preset in presets:
+        means = {}
+        for variant in ("textured", "mean textures"):
+            scene = build_demo_scene("materials")
+            replaced = _replace_textures_with_means(scene, means) if variant == "mean textures" else 0
+            out = out_root / f"materials_{preset}_{variant.replace(' ', '_')}"
+            start = time.perf_counter()
+            job = BakeJob(scene, BakeSettings.from_preset(preset), out)
+            job.run()
+            total = time.perf_counter() - start
+            if variant == "textured":
+                means = _texture_means(scene, out)
+            errors = json.loads((out / "report.json").read_text())["errors"]
+            eevee, alone = errors.get("eevee") or {}, errors.get("eevee_without_bake") or {}
+            bake_s = sum(v for k, v in job.timings.items() if k != "evaluate")
+
+            def by_material(entries):
+                return {k: None if v["flip"] is None else round(v["flip"], 4) for k, v in (entries or {}).items()}
+
+            rows.append({"scene": "materials", "preset": preset, "variant": variant, "inputs_replaced": replaced,
+                         "bake_s": round(bake_s, 1), "total_s": round(total, 1), "flip": round(errors["flip"], 4),
+                         "eevee_flip": _rounded(eevee.get("flip")), "eevee_without_bake_flip": _rounded(alone.get("flip")),
+                         "without_over_with": _rounded(alone["flip"] / eevee["flip"], 2)
+                         if alone.get("flip") and eevee.get("flip") else None,
+                         "flip_by_material": by_material(errors.get("flip_by_material")),
+                         "eevee_flip_by_material": by_material(eevee.get("flip_by_material")),
+                         "eevee_without_bake_flip_by_material": by_material(alone.get("flip_by_material")),
+                         "plan_left_to_renderer": [f"{m.name}: {m.reason}" for o in job.plan.objects
+                                                   for m in o.materials if not m.baked]})
+            _discard_scene(scene)
+            row = rows[-1]
+            print(f"materials {preset:<8} {variant:<14} bake {row['bake_s']:6.1f} s; FLIP Cycles {row['flip']:.4f}, "
+                  f"EEVEE with the bake {row['eevee_flip']}, without {row['eevee_without_bake_flip']} "
+                  f"(ratio {row['without_over_with']}); per material with / without: "
+                  + ", ".join(f"{k} {v} / {row['eevee_without_bake_flip_by_material'].get(k)}"
+                              for k, v in row["eevee_flip_by_material"].items()))
+        textured, flat = rows[-2], rows[-1]
+        if textured["eevee_flip"] and flat["eevee_flip"]:
+            textured["over_mean_textures"] = round(textured["eevee_flip"] / flat["eevee_flip"], 3)
+            print(f"materials {preset}: EEVEE FLIP textured / mean textures {textured['over_mean_textures']} "
+                  "(target <= 1.2)")
     return rows
 
 
@@ -883,10 +992,12 @@ def main(argv=None) -> int:
     preset_scenes = ns.scenes.split(",") if ns.scenes else ["spheres", "room"] if ns.quick else \
         ["spheres", "room", "courtyard"]
     preset_names = ns.presets.split(",") if ns.presets else ["draft"] if ns.quick else list(PRESETS)
-    if set(preset_scenes) - {"spheres", "room", "courtyard"} or set(preset_names) - set(PRESETS):
-        p.error(f"--scenes takes spheres, room, courtyard and --presets {', '.join(PRESETS)}")
+    if set(preset_scenes) - {"spheres", "room", "courtyard", "materials"} or set(preset_names) - set(PRESETS):
+        p.error(f"--scenes takes spheres, room, courtyard, materials and --presets {', '.join(PRESETS)}")
     if "presets" in sections:
         results["presets"] = bench_presets(ns.out, preset_scenes, preset_names, earlier.get("presets", ()), ns.device)
+    if "materials" in sections:
+        results["materials"] = bench_materials(ns.out, ("draft",) if ns.quick else ("draft", "preview"))
     if "stability" in sections:
         results["stability"] = bench_stability(ns.out)
     if "hair" in sections:

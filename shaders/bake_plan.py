@@ -171,6 +171,7 @@ class MaterialPlan:
     sg_count: int
     reason: str
     irradiance_only: bool = False  # baked as an irradiance lightmap: diffuse from the light field, no SGs
+    textured: list[str] = field(default_factory=list)  # BSDF inputs driven by links: measured per texel at capture
 
     @property
     def baked(self) -> bool:
@@ -262,7 +263,7 @@ class BakePlan:
         begun. evaluate_pixels: the evaluate stage's pixels over all its views."""
         least = refit_min_roughness(self.settings.lightfield_resolution)
         refitted = sum(o.texels for o in self.baked_objects
-                       if any(m.glossy and m.roughness >= least for m in o.materials))
+                       if any(m.glossy and (m.roughness >= least or "Roughness" in m.textured) for m in o.materials))
         refits = refitted * (AMPLITUDE_REFIT_S_PER_TEXEL + LOBE_REFIT_S_PER_TEXEL_STEP * self.settings.lobe_refit_steps)
         return {"capture": 0.5 + CAPTURE_S_PER_TEXEL * self.texels,
                 "render": self.render_estimate_s(),

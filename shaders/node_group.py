@@ -28,7 +28,7 @@ except ImportError:
     from shaders.sg_shading import shade
 
 GROUP_NAME = "SG Lightfield"
-GROUP_VERSION = 3  # 3: every node input fed from a computed value (EEVEE uniform block), vectors as components
+GROUP_VERSION = 4  # 4: an Irradiance output (E / pi) for Diffuse BSDFs; 3: every input computed (EEVEE uniforms)
 VERSION_KEY = "sglf_version"
 COLUMN_NODES = 40  # nodes per column in the automatic layout
 
@@ -415,7 +415,7 @@ def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GRO
                ("Roughness", "INPUT", "NodeSocketFloat"), ("F0", "INPUT", "NodeSocketColor"),
                ("Albedo", "INPUT", "NodeSocketColor"), ("Total", "OUTPUT", "NodeSocketColor"),
                ("Glossy", "OUTPUT", "NodeSocketColor"), ("Diffuse", "OUTPUT", "NodeSocketColor"),
-               ("Environment", "OUTPUT", "NodeSocketColor")]
+               ("Environment", "OUTPUT", "NodeSocketColor"), ("Irradiance", "OUTPUT", "NodeSocketColor")]
     for socket_name, in_out, socket_type_name in sockets:
         group.interface.new_socket(socket_name, in_out=in_out, socket_type=socket_type_name)
     inputs = NodeOps._node_in(group, "NodeGroupInput")
@@ -474,10 +474,11 @@ def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GRO
     outputs = ops._node("NodeGroupOutput")
     outputs.location = (200 * (ops.count // COLUMN_NODES + 1), 0)
     for key, socket_name in (("total", "Total"), ("glossy", "Glossy"), ("diffuse", "Diffuse"),
-                             ("environment", "Environment")):
+                             ("environment", "Environment"), ("irradiance", "Irradiance")):
         ops._feed(outputs.inputs[socket_name], result[key])
     group[VERSION_KEY] = GROUP_VERSION
     group["sglf_layout"] = str(layout.to_dict())
+    group["sglf_has_environment"] = bool(env_sgs) and layout.iwev_count > 0  # else its Environment output is black
     return group
 
 

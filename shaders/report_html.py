@@ -97,6 +97,11 @@ def write_report_html(out_dir) -> Path:
                  ("EEVEE FLIP vs Cycles bake", eevee.get("flip_vs_cycles_bake")),
                  ("EEVEE first render s (incl. shader compile)", eevee.get("first_render_s"))]
         rows += [("EEVEE shader failed (renders magenta)", error) for error in eevee.get("shader_errors", ())]
+    without = errors.get("eevee_without_bake") or {}
+    if "error" in without:
+        rows.append(("EEVEE without the bake", f"not rendered: {without['error']}"))
+    elif without:
+        rows.append(("EEVEE without the bake FLIP vs reference (ray tracing, baked probes)", without.get("flip")))
     lightfield = report.get("train", {}).get("metrics", {}).get("lightfield", {})
     rows += [(f"light-field fit {key}", value) for key, value in lightfield.items() if not isinstance(value, dict)]
     if "midpoint" in lightfield:
@@ -127,7 +132,13 @@ def write_report_html(out_dir) -> Path:
             parts.append(f"<tr><th>{esc(key)}</th><td>{esc(str(round(value, 5) if isinstance(value, float) else value))}"
                          "</td></tr>")
     parts.append("</table>")
-    pictures = [(name, caption) for name, caption in PICTURE_CAPTIONS if (out_dir / name).is_file()]
+    alone = errors.get("eevee_without_bake") or {}
+    baked_views = eevee.get("views", []) if eevee and "error" not in eevee else []
+    pictures = [(view["picture"], f"view {k}: Cycles reference | EEVEE without the bake (FLIP {view['flip']:.4f}) | "
+                                  f"EEVEE with the bake" + (f" (FLIP {baked_views[k]['flip']:.4f})"
+                                                            if k < len(baked_views) else ""))
+                for k, view in enumerate(alone.get("views", [])) if (out_dir / view["picture"]).is_file()]
+    pictures += [(name, caption) for name, caption in PICTURE_CAPTIONS if (out_dir / name).is_file()]
     pictures += [(view["picture"], f"{view['view']}: reference | SG bake | FLIP error (FLIP {view['flip']:.4f}, "
                                    f"PSNR {_psnr(view['psnr'])})") for view in errors.get("views", [])
                  if (out_dir / view["picture"]).is_file()]

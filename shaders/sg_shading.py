@@ -311,7 +311,8 @@ def split_sum_albedo(ops, f0, roughness, ndotv):
 
 def shade(ops, lookup, normal, view, roughness, f0, albedo, sg_count: int, iwev_count: int = 0, env_sgs=(),
           has_irradiance: bool = True, sh_count: int = 0):
-    """Colours {'glossy', 'diffuse', 'environment', 'total'}.
+    """Colours {'glossy', 'diffuse', 'environment', 'total', 'irradiance'} ('irradiance': E / pi, what a white
+    Lambertian surface shows: a Diffuse BSDF of any colour is that colour times it).
 
     lookup(name, j) -> (vector, alpha): 'sg' j: (axis, encoded sharpness); 'amp' j: (rgb amplitude, unused);
     'iwev' j: (axis, encoded sharpness); 'iwev_amp' j: (rgb amplitude, unused); 'irradiance' 0: (rgb, unused);
@@ -359,7 +360,7 @@ def shade(ops, lookup, normal, view, roughness, f0, albedo, sg_count: int, iwev_
             ops.barrier(visibility)
         visibility = ops.vmax(ops.vmin(visibility, ops.vconst((1.0, 1.0, 1.0))), black)  # W_E in [0, 1]
         environment = ops.vmul(env, visibility)
-    diffuse = black
+    diffuse = uniform_radiance = black
     if has_irradiance:
         irradiance, _ = lookup("irradiance", 0)
         uniform_radiance = ops.vscale(ops.vmax(irradiance, black), ops.const(1.0 / math.pi))
@@ -371,4 +372,5 @@ def shade(ops, lookup, normal, view, roughness, f0, albedo, sg_count: int, iwev_
         albedo = ops.vmul(albedo, ops.vmax(ops.vsub(ops.vconst((1.0, 1.0, 1.0)), specular_albedo), black))
         diffuse = ops.vmul(albedo, uniform_radiance)
     total = ops.vadd(ops.vadd(glossy, environment), diffuse)
-    return {"glossy": glossy, "diffuse": diffuse, "environment": environment, "total": total}
+    return {"glossy": glossy, "diffuse": diffuse, "environment": environment, "total": total,
+            "irradiance": uniform_radiance}

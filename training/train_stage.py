@@ -82,9 +82,19 @@ def _per_texel(atlas, texel_info: dict, texels: np.ndarray, by_name: dict, defau
 
 def texel_lobe_counts(atlas, texel_info: dict, texels: np.ndarray, plan: BakePlan, most: int) -> np.ndarray:
     """(T,) SGs each texel may use: its material's N from the plan (`most` for texels of materials that get no
-    SGs: they sit beside glossy texels and bilinear lookups blend them in)."""
-    by_name = {m.name: m.sg_count for o in plan.baked_objects for m in o.materials if m.glossy}
-    return _per_texel(atlas, texel_info, texels, by_name, most, np.int64)
+    SGs: they sit beside glossy texels and bilinear lookups blend them in); a textured roughness's texels get what
+    their measured roughness needs (auto_sg_count), up to the material's N."""
+    from shaders.bake_plan import auto_sg_count
+
+    glossy = [m for o in plan.baked_objects for m in o.materials if m.glossy]
+    counts = _per_texel(atlas, texel_info, texels, {m.name: m.sg_count for m in glossy}, most, np.int64)
+    textured = {m.name for m in glossy if "Roughness" in m.textured and not plan.settings.uniform_sg_count}
+    if textured:
+        ids = {m["id"] for m in texel_info["materials"] if m["name"] in textured}
+        mine = np.isin(texel_material_ids(atlas, texels), list(ids))
+        roughness = channels(atlas, "roughness")[texels[mine, 0], texels[mine, 1]]
+        counts[mine] = np.minimum(counts[mine], [auto_sg_count(float(r), most) for r in roughness])
+    return counts
 
 
 def _error_members(atlas, texel_info: dict, texels, roughness, resolution: int, only=None):
@@ -199,13 +209,12 @@ def _relayed(steps, progress):
 # Shares of the light field's progress bar: training, the amplitude refit, the lobe refit (when it runs).
 PROGRESS_SHARES = (0.9, 0.1, 0.0)
 PROGRESS_SHARES_WITH_LOBE_REFIT = (0.6, 0.05, 0.35)
-DEFAULT_REFIT_ROUGHNESS = 0.5  # texels of a material the plan does not list (none expected)
 
 
 def texel_roughness(atlas, texel_info: dict, texels: np.ndarray, plan: BakePlan) -> np.ndarray:
-    """(T,) the Principled roughness of each texel's material, as the plan read it."""
-    by_name = {m.name: m.roughness for o in plan.baked_objects for m in o.materials}
-    return _per_texel(atlas, texel_info, texels, by_name, DEFAULT_REFIT_ROUGHNESS, np.float64)
+    """(T,) each texel's roughness: the capture's texel maps hold the plan's value for constant materials and the
+    value measured over the texel for textured ones (blender_addon/surface_probe.py)."""
+    return channels(atlas, "roughness")[texels[:, 0], texels[:, 1]].astype(np.float64)
 
 
 def train_stage(out_dir, plan: BakePlan, *, progress=None, should_cancel=lambda: False, **options) -> TrainResult:

@@ -1,0 +1,186 @@
+"""Per-texel material values measured from the material itself (capture stage, DESIGN section 10).
+
+Where a baked BSDF's inputs are driven by links (image or procedural textures, attributes, node groups), the texel
+maps' roughness, metallic, base colour and F0 are not constants. They are measured by Cycles: each object's slots are
+swapped for probe copies of their materials in which every baked BSDF is replaced by an Emission of one quantity
+computed from the BSDF's own inputs (surface_shaders.LeafInputs, the same nodes the baked copy shades with), and an
+EMIT bake with the lightmap layer writes it into an image of the object's atlas tile. PROBE_SAMPLES jittered samples
+per texel average the texture over the texel's footprint. Mix Shader factors blend the quantities as they blend the
+BSDFs. Slots, selection and render settings are restored before returning, also on errors; the probes are removed.
+"""
+from __future__ import annotations
+
+import time
+
+import bpy
+import numpy as np
+
+try:  # inside the installed extension the numpy side is a sibling package
+    from .surface_shaders import BAKED_BSDFS, KEPT_SHADERS, LeafInputs, copy_material, rewrite_surface
+    from .scene_analysis import quiet_stdout, unbaked
+except ImportError:  # bpy as a module with the repository on sys.path
+    from blender_addon.scene_analysis import quiet_stdout, unbaked
+    from blender_addon.surface_shaders import BAKED_BSDFS, KEPT_SHADERS, LeafInputs, copy_material, rewrite_surface
+
+PROBE_SUFFIX = " (SG probe)"
+PROBE_IMAGE = "SGLF surface probe"
+PROBE_SAMPLES = 16
+EDGE_MARGIN = 3  # texels: the capture's gutter (UV_PADDING) and one more
+# Three bakes, three colour channels each: (roughness, metallic, -), base colour, F0. Texel-map channel order.
+PASSES = ("roughness_metallic", "base", "f0")
+SURFACE_CHANNELS = 8  # roughness, metallic, base RGB, F0 RGB
+
+
+def _quantity(inputs: LeafInputs, name: str):
+    if name == "roughness_metallic":
+        combine = inputs._new("ShaderNodeCombineColor")
+        inputs.feed(combine.inputs[0], inputs.roughness())
+        inputs.feed(combine.inputs[1], inputs.metallic())
+        combine.inputs[2].default_value = 0.0
+        return combine.outputs[0]
+    return inputs.base_colour() if name == "base" else inputs.f0()
+
+
+def _probe_material(original, name: str):
+    """A copy of `original` whose baked BSDFs emit one quantity and whose own emitters emit nothing, with an active
+    Image Texture node for the bake to write into."""
+    material = copy_material(original, f"{PROBE_SUFFIX} {name}")
+
+    def build_leaf(tree, node):
+        inputs = LeafInputs(tree, node)
+        if node.type in KEPT_SHADERS:
+            return inputs.emission_of((0.0, 0.0, 0.0))
+        return inputs.emission_of(_quantity(inputs, name))
+
+    groups = rewrite_surface(material, build_leaf, suffix=f"{PROBE_SUFFIX} {name}", kinds=BAKED_BSDFS | KEPT_SHADERS)
+    target = material.node_tree.nodes.new("ShaderNodeTexImage")
+    material.node_tree.nodes.active = target
+    return material, groups
+
+
+def _bake_tile(scene, obj, tile, image, material_for_slot) -> np.ndarray:
+    """EMIT-bake `obj` into `image` (resized to its tile) with each slot's material swapped for
+    material_for_slot(original) (which must hold an active Image Texture node; its image is set here); the slots are
+    restored before returning. Returns (h, w, 3), row 0 = the tile's top row."""
+    x, y, w, h = (int(v) for v in tile.pixel_rect)
+    if tuple(image.size) != (w, h):
+        image.scale(w, h)
+    undo = []
+    try:
+        for slot in obj.material_slots:
+            original = unbaked(slot.material) if slot.material is not None else None
+            if original is None:
+                continue
+            probe = material_for_slot(original)
+            probe.node_tree.nodes.active.image = image
+            undo.append((slot, slot.material))
+            slot.material = probe
+        with bpy.context.temp_override(scene=scene, view_layer=scene.view_layers[0], active_object=obj, object=obj,
+                                       selected_objects=[obj], selected_editable_objects=[obj]), quiet_stdout():
+            # texels whose centre misses every triangle (chart edges) get their nearest baked neighbour
+            bpy.ops.object.bake(type="EMIT", uv_layer=tile.uv_layer, margin=EDGE_MARGIN, margin_type="EXTEND",
+                                use_clear=True, target="IMAGE_TEXTURES")
+    finally:
+        for slot, material in reversed(undo):
+            slot.material = material
+    pixels = np.empty(w * h * 4, np.float32)
+    image.pixels.foreach_get(pixels)
+    return pixels.reshape(h, w, 4)[::-1, :, :3]  # image rows from the bottom, atlas rows from the top
+
+
+class _CyclesBakeSettings:
+    """Cycles with PROBE_SAMPLES samples and no denoising for the block; the scene's settings come back after."""
+
+    def __init__(self, scene):
+        self.scene = scene
+
+    def __enter__(self):
+        render, cycles = self.scene.render, self.scene.cycles
+        self.saved = (render.engine, cycles.samples, cycles.use_denoising)
+        render.engine, cycles.samples, cycles.use_denoising = "CYCLES", PROBE_SAMPLES, False
+        return self
+
+    def __exit__(self, *exc):
+        render, cycles = self.scene.render, self.scene.cycles
+        render.engine, cycles.samples, cycles.use_denoising = self.saved
+
+
+def measure_surfaces(scene, objects, tiles, atlas_shape, object_ids, should_measure) -> tuple[np.ndarray, np.ndarray,
+                                                                                               dict]:
+    """Bake the surface quantities of `objects` (each with its tile) whose materials `should_measure(material)`.
+    object_ids: (H, W) the atlas' object id per texel (0 = none). Returns ((H, W, 8) values, (H, W) measured mask,
+    {'seconds', 'objects'})."""
+    start = time.perf_counter()
+    height, width = atlas_shape
+    values = np.zeros((height, width, SURFACE_CHANNELS), np.float32)
+    measured = np.zeros((height, width), bool)
+    chosen = [(obj, tile) for obj, tile in zip(objects, tiles)
+              if any(s.material is not None and should_measure(unbaked(s.material)) for s in obj.material_slots)]
+    if not chosen:
+        return values, measured, {"seconds": 0.0, "objects": []}
+    probes, created_groups = {}, []
+    image = bpy.data.images.new(PROBE_IMAGE, 4, 4, alpha=True, float_buffer=True)
+
+    def probe_for(name):
+        def material_for_slot(original):
+            if (original.name, name) not in probes:
+                probes[(original.name, name)], groups = _probe_material(original, name)
+                created_groups.extend(groups)
+            return probes[(original.name, name)]
+        return material_for_slot
+
+    try:
+        with _CyclesBakeSettings(scene):
+            for obj, tile in chosen:
+                x, y, w, h = tile.pixel_rect
+                mine = object_ids[y:y + h, x:x + w] == tile.id
+                block = values[y:y + h, x:x + w]
+                for k, name in enumerate(PASSES):
+                    baked = _bake_tile(scene, obj, tile, image, probe_for(name))
+                    if k == 0:
+                        block[mine, 0:2] = baked[mine][:, :2]
+                    else:
+                        block[mine, 3 * k - 1:3 * k + 2] = baked[mine]
+                measured[y:y + h, x:x + w] |= mine
+    finally:
+        for material in probes.values():
+            bpy.data.materials.remove(material)
+        for group in reversed(created_groups):
+            if group.users == 0:
+                bpy.data.node_groups.remove(group)
+        bpy.data.images.remove(image)
+    np.clip(values, 0.0, 1.0, out=values)
+    return values, measured, {"seconds": round(time.perf_counter() - start, 3), "objects": [o.name for o, _ in chosen]}
+
+
+def mean_of_links(scene, obj, tile, object_ids, material, inputs) -> dict:
+    """The mean over `obj`'s texels of what the links into `inputs` of `material` carry: {(node name, input
+    identifier): RGB}, each by an EMIT bake of a copy of the material whose surface is an Emission of that link.
+    Only nodes of the material's own tree are named (not inside node groups)."""
+    x, y, w, h = tile.pixel_rect
+    mine = object_ids[y:y + h, x:x + w] == tile.id
+    image = bpy.data.images.new(PROBE_IMAGE, 4, 4, alpha=True, float_buffer=True)
+    made, means = [], {}
+    try:
+        with _CyclesBakeSettings(scene):
+            for node_name, identifier in inputs:
+                def material_for_slot(original, node_name=node_name, identifier=identifier):
+                    copy = original.copy()
+                    made.append(copy)
+                    tree = copy.node_tree
+                    if original == material:
+                        socket = next(s for s in tree.nodes[node_name].inputs if s.identifier == identifier)
+                        emission = tree.nodes.new("ShaderNodeEmission")
+                        tree.links.new(socket.links[0].from_socket, emission.inputs["Color"])
+                        for output in [n for n in tree.nodes if n.bl_idname == "ShaderNodeOutputMaterial"]:
+                            tree.links.new(emission.outputs[0], output.inputs["Surface"])
+                    tree.nodes.active = tree.nodes.new("ShaderNodeTexImage")
+                    return copy
+
+                baked = _bake_tile(scene, obj, tile, image, material_for_slot)
+                means[(node_name, identifier)] = tuple(float(v) for v in baked[mine].mean(axis=0))
+    finally:
+        for copy in made:
+            bpy.data.materials.remove(copy)
+        bpy.data.images.remove(image)
+    return means
