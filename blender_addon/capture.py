@@ -31,8 +31,9 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
     from ..shaders.bake_report import update_report
     from ..shaders.exr_io import write_exr
-    from ..shaders.texel_maps import (CHANNEL, CAPTURE_PICTURES, FLAG_BURIED, FLAG_CENTRE_INSIDE, FLAG_COVERED, FLAG_GUTTER,
-                                      FLAG_PUSHED_OUT, TEXEL_CHANNELS, TEXELS_FILE, TEXELS_JSON, save_capture_pictures)
+    from ..shaders.texel_maps import (CAPTURE_PICTURES, CHANNEL, FLAG_BURIED, FLAG_CENTRE_INSIDE, FLAG_COVERED,
+                                      FLAG_GUTTER, FLAG_PUSHED_OUT, TEXEL_CHANNELS, TEXELS_FILE, TEXELS_JSON,
+                                      save_capture_pictures)
     from ..shaders.texel_raster import centre_overlap_count, dilate, rasterize, shelf_pack, signed_areas
     from .scene_analysis import (active_scene, loop_triangle_arrays, principled_surface, transform_points,
                                  triangle_areas, unbaked)
@@ -44,8 +45,9 @@ except ImportError:  # bpy as a module with the repository on sys.path
     from shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
     from shaders.bake_report import update_report
     from shaders.exr_io import write_exr
-    from shaders.texel_maps import (CHANNEL, CAPTURE_PICTURES, FLAG_BURIED, FLAG_CENTRE_INSIDE, FLAG_COVERED, FLAG_GUTTER,
-                                    FLAG_PUSHED_OUT, TEXEL_CHANNELS, TEXELS_FILE, TEXELS_JSON, save_capture_pictures)
+    from shaders.texel_maps import (CAPTURE_PICTURES, CHANNEL, FLAG_BURIED, FLAG_CENTRE_INSIDE, FLAG_COVERED,
+                                    FLAG_GUTTER, FLAG_PUSHED_OUT, TEXEL_CHANNELS, TEXELS_FILE, TEXELS_JSON,
+                                    save_capture_pictures)
     from shaders.texel_raster import centre_overlap_count, dilate, rasterize, shelf_pack, signed_areas
 
 LIGHTMAP_LAYER = "SGLightmap"
@@ -515,7 +517,7 @@ def _texel_atlas(maps, valid, materials):
 
 def _measured_statistics(materials, atlas, probe_info):
     """Add what was measured per textured material to its entry of the material table: the 5th, 50th and 95th
-    percentiles of its texels' roughness and metallic and the mean base colour; and the probe's time."""
+    percentiles of its texels' roughness and metallic and the mean base colour; the probe's record lists them."""
     rows, cols = np.nonzero(atlas[..., CHANNEL["valid"]] > 0)
     ids = atlas[rows, cols, CHANNEL["material_id"]].astype(np.int64)
     for material in materials:
@@ -527,7 +529,8 @@ def _measured_statistics(materials, atlas, probe_info):
         def percentiles(channel):
             return [round(float(v), 4) for v in np.percentile(texels[:, CHANNEL[channel]], (5, 50, 95))]
 
-        material["measured"] = {"texels": int(np.count_nonzero(mine)), "roughness_p5_p50_p95": percentiles("roughness"),
+        material["measured"] = {"texels": int(np.count_nonzero(mine)),
+                                "roughness_p5_p50_p95": percentiles("roughness"),
                                 "metallic_p5_p50_p95": percentiles("metallic"),
                                 "base_color_mean": [round(float(texels[:, CHANNEL[c]].mean()), 4)
                                                     for c in ("base.R", "base.G", "base.B")]}

@@ -440,6 +440,7 @@ def _evaluate_eevee_without_bake(scene, cameras, references, baked_images, out_d
         views.append({"flip": mean_flip, "psnr": psnr(ref_ldr, alone_ldr), "rmse": rmse(ref_ldr, alone_ldr),
                       "picture": picture})
     return {"flip": float(np.mean([v["flip"] for v in views])), "psnr": float(np.mean([v["psnr"] for v in views])),
-            "views": views, "flip_by_material": flip_by_material(flip_maps, *materials), "setup": "original materials; screen-space ray tracing and fast GI; a volume probe over "
-                                     "the scene (emission captured) and a sphere probe, baked by Blender",
+            "views": views, "flip_by_material": flip_by_material(flip_maps, *materials),
+            "setup": "original materials; screen-space ray tracing and fast GI; a volume probe over the scene "
+                     "(emission captured) and a sphere probe, baked by Blender",
             "shader_errors": failed, "render_s": seconds}

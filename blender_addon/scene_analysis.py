@@ -94,8 +94,8 @@ def analyse_material(material, settings: BakeSettings) -> MaterialPlan:
     textured = sorted({n for leaf in surface.leaves for n in leaf.linked})
     note = f"; textured inputs ({', '.join(textured)}) read per pixel" if textured else ""
     if any(leaf.roughness is None for leaf in specular):
-        return MaterialPlan(name, 0.0, min((0.5 if leaf.metallic is None else leaf.metallic) for leaf in surface.leaves),
-                            True, most,
+        metallic = min((0.5 if leaf.metallic is None else leaf.metallic) for leaf in surface.leaves)
+        return MaterialPlan(name, 0.0, metallic, True, most,
                             f"roughness is textured: glossy, up to {most} SGs per texel as the roughness measured over "
                             "its lightmap needs" + note, textured=textured)
     roughness = min((leaf.roughness for leaf in specular), default=1.0)

@@ -90,7 +90,8 @@ def _group_output(tree):
 
 
 def walk_surface(tree, socket, on_leaf, enter_group=lambda group_node: group_node.node_tree, stack=()):
-    """Follow the shader arriving at input `socket` of `tree` down to its leaves: on_leaf(tree, node, socket) for each;
+    """Follow the shader arriving at input `socket` of `tree` down to its leaves: on_leaf(tree, node, socket, stack)
+    for each;
     enter_group(group node) -> the tree to walk inside it (the group's own, or a copy). `stack`: the group nodes we are
     inside (to leave a group through its Group Input)."""
     link = _link(socket)
@@ -98,7 +99,7 @@ def walk_surface(tree, socket, on_leaf, enter_group=lambda group_node: group_nod
         return
     node = link.from_node
     if node.mute:
-        on_leaf(tree, node, socket)
+        on_leaf(tree, node, socket, stack)
     elif node.bl_idname == "NodeReroute":
         walk_surface(tree, node.inputs[0], on_leaf, enter_group, stack)
     elif node.type in ("MIX_SHADER", "ADD_SHADER"):
@@ -116,46 +117,70 @@ def walk_surface(tree, socket, on_leaf, enter_group=lambda group_node: group_nod
         if outer is not None:
             walk_surface(parent_tree, outer, on_leaf, enter_group, stack[:-1])
     else:
-        on_leaf(tree, node, socket)
+        on_leaf(tree, node, socket, stack)
 
 
-def input_constant(node, name, default=None):
-    """(value, linked) of one input: a float or a tuple for unlinked sockets, `default` for linked or missing ones."""
+def _constant_source(socket, stack=()):
+    """The unlinked socket whose value reaches `socket` through reroutes and node-group inputs (`stack`: the group
+    nodes the walk is inside, as walk_surface passes it), or None where a link from any other node drives it."""
+    while True:
+        link = _link(socket)
+        if link is None:
+            return socket
+        node = link.from_node
+        if node.bl_idname == "NodeReroute":
+            socket = node.inputs[0]
+        elif node.bl_idname == "NodeGroupInput" and stack:
+            group_node = stack[-1][1]
+            socket = next((s for s in group_node.inputs if s.identifier == link.from_socket.identifier), None)
+            stack = stack[:-1]
+            if socket is None:
+                return None
+        else:
+            return None
+
+
+def input_constant(node, name, default=None, stack=()):
+    """(value, linked) of one input: a float or a tuple where a constant reaches it (its own value, or through
+    reroutes and node-group inputs), `default` for linked (textured) or missing ones."""
     socket = node.inputs.get(name)
     if socket is None:
         return default, False
-    if _link(socket) is not None:
+    source = _constant_source(socket, stack)
+    if source is None:
         return default, True
-    value = socket.default_value
+    value = source.default_value
     return (tuple(value) if hasattr(value, "__len__") else float(value)), False
 
 
-def _leaf(node) -> tuple[Leaf | None, list[str]]:
-    """A baked BSDF's Leaf, or the reasons the material goes to the renderer."""
+def _leaf(node, stack=()) -> tuple[Leaf | None, list[str]]:
+    """A baked BSDF's Leaf, or the reasons the material goes to the renderer. `stack`: the group nodes it is inside."""
     kind = node.type
     reasons = []
-    linked = [s.name for s in node.inputs if s.type != "SHADER" and _link(s) is not None and s.enabled]
+    linked = [s.name for s in node.inputs if s.type != "SHADER" and s.enabled and _constant_source(s, stack) is None]
+
+    def constant(name, default=None):
+        return input_constant(node, name, default, stack)
+
     if kind == "BSDF_PRINCIPLED":
         for name, threshold, reason in PRINCIPLED_RENDERER_INPUTS:
-            value, is_linked = input_constant(node, name, 0.0)
+            value, is_linked = constant(name, 0.0)
             if is_linked or (value is not None and value > threshold):
                 reasons.append(f"'{node.name}': {reason}")
-        alpha, alpha_linked = input_constant(node, "Alpha", 1.0)
+        alpha, alpha_linked = constant("Alpha", 1.0)
         if alpha_linked or alpha < 1.0:
             reasons.append(f"'{node.name}': alpha below 1 or textured (cut-out or blended: see-through)")
-        roughness, _ = input_constant(node, "Roughness")
-        metallic, _ = input_constant(node, "Metallic")
+        roughness, _ = constant("Roughness")
+        metallic, _ = constant("Metallic")
         return (None if reasons else Leaf(kind, node.name, roughness, metallic, True, linked)), reasons
     if kind == "BSDF_DIFFUSE":
         return Leaf(kind, node.name, 1.0, 0.0, False, linked), reasons
     if kind in ("BSDF_GLOSSY", "BSDF_ANISOTROPIC"):
-        roughness, _ = input_constant(node, "Roughness")
-        return Leaf(kind, node.name, roughness, 1.0, True, linked), reasons
+        return Leaf(kind, node.name, constant("Roughness")[0], 1.0, True, linked), reasons
     if kind == "BSDF_METALLIC":
         if getattr(node, "fresnel_type", "F82") == "PHYSICAL_CONDUCTOR" and ("IOR" in linked or "Extinction" in linked):
             return None, [f"'{node.name}': Metallic BSDF with a textured conductor IOR (not modelled)"]
-        roughness, _ = input_constant(node, "Roughness")
-        return Leaf(kind, node.name, roughness, 1.0, True, linked), reasons
+        return Leaf(kind, node.name, constant("Roughness")[0], 1.0, True, linked), reasons
     return None, reasons
 
 
@@ -173,7 +198,7 @@ def analyse_surface(material) -> SurfaceAnalysis:
         return result
     seen = set()
 
-    def on_leaf(_tree, node, _socket):
+    def on_leaf(_tree, node, _socket, stack):
         key = node.as_pointer()
         if key in seen:
             return
@@ -187,7 +212,7 @@ def analyse_surface(material) -> SurfaceAnalysis:
                 color, color_linked = input_constant(node, "Color", (0.0, 0.0, 0.0, 1.0))
                 result.emissive |= (strength_linked or strength > 0) and (color_linked or max(color[:3]) > 0)
         elif node.type in BAKED_BSDFS:
-            leaf, reasons = _leaf(node)
+            leaf, reasons = _leaf(node, stack)
             result.renderer_reasons += reasons
             if leaf is not None:
                 result.leaves.append(leaf)
@@ -218,9 +243,10 @@ def copy_material(original, suffix: str = COPY_SUFFIX):
 
 
 def rewrite_surface(material, build_leaf, suffix: str = COPY_SUFFIX, kinds=frozenset(BAKED_BSDFS)) -> list:
-    """Replace every shader of a type in `kinds` (baked BSDFs by default) below `material`'s Material Outputs by build_leaf(tree, bsdf node) -> a shader output
-    socket (called once per BSDF and tree). `material` must be a copy: its tree is edited, and node groups on the way
-    are swapped for copies (made once per group, returned so the caller can remove them)."""
+    """Replace every shader of a type in `kinds` (baked BSDFs by default) below `material`'s Material Outputs by
+    build_leaf(tree, node) -> a shader output socket (called once per node and tree). `material` must be a copy: its
+    tree is edited, and node groups on the way are swapped for copies (made once per group, returned so the caller can
+    remove them)."""
     group_copies = {}  # user's group name -> copy
     built = {}
 
@@ -236,7 +262,7 @@ def rewrite_surface(material, build_leaf, suffix: str = COPY_SUFFIX, kinds=froze
         group_node.node_tree = group_copies[tree.name]
         return group_node.node_tree
 
-    def on_leaf(tree, node, socket):
+    def on_leaf(tree, node, socket, _stack):
         if node.mute or node.type not in kinds:
             return
         key = (tree.as_pointer(), node.name)
@@ -271,7 +297,7 @@ def leaves(material) -> list:
     """(tree, node) of every baked BSDF below the material's outputs, once each, in the order first reached."""
     found = {}
 
-    def on_leaf(tree, node, _socket):
+    def on_leaf(tree, node, _socket, _stack):
         if not node.mute and node.type in BAKED_BSDFS:
             found.setdefault(node.as_pointer(), (tree, node))
 
@@ -282,9 +308,10 @@ def leaves(material) -> list:
 
 
 class LeafInputs:
-    """Nodes in `tree` (None: constants only, NeedsNodes where a link is met) that compute a baked BSDF's shading inputs per pixel from its own input links:
-    roughness, F0 (normal-incidence Fresnel colour), diffuse albedo, shading normal, emission. Each method returns an
-    output socket, or a constant (float or RGB tuple) where nothing is linked."""
+    """Nodes in `tree` (None: constants only, NeedsNodes where a link is met) that compute a baked BSDF's shading
+    inputs per pixel from its own input links: roughness, F0 (normal-incidence Fresnel colour), diffuse albedo,
+    shading normal, emission. Each method returns an output socket, or a constant (float or RGB tuple) where nothing
+    is linked."""
 
     def __init__(self, tree, node):
         self.tree, self.node = tree, node
@@ -377,7 +404,8 @@ class LeafInputs:
         if kind == "BSDF_DIFFUSE":
             return (0.0, 0.0, 0.0)
         if kind == "BSDF_METALLIC" and getattr(self.node, "fresnel_type", "F82") == "PHYSICAL_CONDUCTOR":
-            n, k = _rgb(self.source("IOR", (2.757, 2.513, 2.231))), _rgb(self.source("Extinction", (3.867, 3.404, 3.009)))
+            n = _rgb(self.source("IOR", (2.757, 2.513, 2.231)))
+            k = _rgb(self.source("Extinction", (3.867, 3.404, 3.009)))
             return tuple(((a - 1) ** 2 + b * b) / ((a + 1) ** 2 + b * b) for a, b in zip(n, k))
         if kind != "BSDF_PRINCIPLED":
             return self.base_colour()

@@ -276,7 +276,9 @@ class BakePlan:
         """What the bake models and why, one line each: what the CLI prints, the panel and the report show."""
         lines = [f"{o.name}: {'bake' if o.bake_lightfield else 'skip'} ({o.reason}; {o.texels} texels)"
                  for o in self.objects]
-        glossy = {m.name: m.sg_count for o in self.baked_objects for m in o.materials if m.glossy}
+        glossy = {m.name: f"up to {m.sg_count} (per texel, its textured roughness)"
+                  if "Roughness" in m.textured and not self.settings.uniform_sg_count else m.sg_count
+                  for o in self.baked_objects for m in o.materials if m.glossy}
         if glossy:
             rule = ("every glossy material the same (uniform)" if self.settings.uniform_sg_count else
                     f"the fewest within {100 * SG_COUNT_ERROR_BUDGET:.0f} % of 16 SGs at its roughness (measured), at most "
@@ -285,6 +287,9 @@ class BakePlan:
                          + f" ({rule})")
         if self.irradiance_only_materials:
             lines.append("irradiance lightmap only (rough, no SGs): " + ", ".join(self.irradiance_only_materials))
+        left = sorted({m.name for o in self.objects for m in o.materials if m.reason.startswith("left to the renderer")})
+        if left:
+            lines.append("left to the renderer (reasons above): " + ", ".join(left))
         if self.lightmap_only_texels and self.settings.lightmap_pass_samples != self.settings.samples:
             names = ", ".join(o.name for o in self.lightmap_only_objects)
             lines.append(f"light fields of objects with lightmaps only ({names}): "

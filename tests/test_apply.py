@@ -24,7 +24,7 @@ from training.train_stage import ENV_SG_COUNT
 pytestmark = pytest.mark.slow
 
 
-def _parity_scene(group, width, height):
+def parity_scene(group, width, height):
     scene = bpy.data.scenes.new("parity")
     scene.render.engine = "CYCLES"
     scene.cycles.samples, scene.cycles.use_denoising = 1, False
@@ -56,20 +56,19 @@ def _parity_scene(group, width, height):
     return scene, node
 
 
-def _parity_worst(tmp_path, layout, cells, env_sgs, roughnesses, angles_deg) -> float:
-    """Worst relative difference between a Cycles render of the node group and its numpy reference, over the
-    parameter cells (h, w) of every tile and the given roughnesses and normal angles."""
+def parity_group(tmp_path, layout, cells, env_sgs, name):
+    """The node group over a packed image of the parameter cells (h, w) of every tile, and lookup(kind, j) of the
+    stored (half-float) cells for the numpy reference. Every cell spans 2 x 2 identical texels and each pixel centre
+    of a (w, h) render hits the middle of a cell, so the node-side bilinear filter returns the cell's exact values
+    despite Cycles' tiny pixel-filter jitter."""
     h, w = next(iter(cells.values())).shape[:2]
-    # Every parameter cell spans 2 x 2 identical texels and each pixel centre hits the middle of a cell, so the
-    # node-side bilinear filter returns the cell's exact values despite Cycles' tiny pixel-filter jitter.
     tiles = {key: np.repeat(np.repeat(value, 2, axis=0), 2, axis=1) for key, value in cells.items()}
     path = write_exr(tmp_path / "packed.exr", pack_tiles(layout, tiles, (2 * h, 2 * w)), precision="half",
                      channels=["R", "G", "B", "A"])
     stored, _, _ = read_exr(path, channels=["R", "G", "B", "A"])
     image = bpy.data.images.load(str(path))
     image.colorspace_settings.name, image.alpha_mode = "Non-Color", "CHANNEL_PACKED"
-    group = build_node_group(image, layout, env_sgs, name=f"SG Lightfield parity {layout.sg_count} {layout.sh_count}")
-    scene, node = _parity_scene(group, w, h)
+    group = build_node_group(image, layout, env_sgs, name=name)
     columns, rows = layout.grid
 
     def lookup(kind, j):
@@ -78,6 +77,16 @@ def _parity_worst(tmp_path, layout, cells, env_sgs, roughnesses, angles_deg) -> 
         texel = stored[top:top + 2 * h:2, col * 2 * w:(col + 1) * 2 * w:2].astype(np.float64)
         return texel[..., :3], texel[..., 3]
 
+    return group, lookup
+
+
+def _parity_worst(tmp_path, layout, cells, env_sgs, roughnesses, angles_deg) -> float:
+    """Worst relative difference between a Cycles render of the node group and its numpy reference, over the
+    parameter cells (h, w) of every tile and the given roughnesses and normal angles."""
+    h, w = next(iter(cells.values())).shape[:2]
+    group, lookup = parity_group(tmp_path, layout, cells, env_sgs,
+                                 f"SG Lightfield parity {layout.sg_count} {layout.sh_count}")
+    scene, node = parity_scene(group, w, h)
     worst = 0.0
     for roughness in roughnesses:
         for theta in angles_deg:

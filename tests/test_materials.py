@@ -74,8 +74,10 @@ def test_every_common_surface_is_baked_or_left_to_the_renderer_with_its_reason()
 
     group = bpy.data.node_groups.new("test group", "ShaderNodeTree")
     group.interface.new_socket("Shader", in_out="OUTPUT", socket_type="NodeSocketShader")
+    group.interface.new_socket("Metallic", in_out="INPUT", socket_type="NodeSocketFloat")
     inner = group.nodes.new("ShaderNodeBsdfPrincipled")
-    inner.inputs["Roughness"].default_value, inner.inputs["Metallic"].default_value = 0.2, 1.0
+    inner.inputs["Roughness"].default_value = 0.2
+    group.links.new(group.nodes.new("NodeGroupInput").outputs["Metallic"], inner.inputs["Metallic"])
     reroute = group.nodes.new("NodeReroute")
     group.links.new(inner.outputs[0], reroute.inputs[0])
     group.links.new(reroute.outputs[0], group.nodes.new("NodeGroupOutput").inputs[0])
@@ -83,6 +85,7 @@ def test_every_common_surface_is_baked_or_left_to_the_renderer_with_its_reason()
     grouped.node_tree.nodes.remove(grouped.node_tree.nodes["Principled BSDF"])
     node = grouped.node_tree.nodes.new("ShaderNodeGroup")
     node.node_tree = group
+    node.inputs["Metallic"].default_value = 1.0  # a constant reaching the BSDF through the group's input
     grouped.node_tree.links.new(node.outputs[0], grouped.node_tree.nodes["Material Output"].inputs["Surface"])
     plans["grouped"] = analyse_material(grouped, DRAFT)
 
@@ -136,7 +139,7 @@ def test_every_common_surface_is_baked_or_left_to_the_renderer_with_its_reason()
     assert plans["textured"].glossy and plans["textured"].textured == ["Base Color", "Roughness"]
     assert "measured" in plans["textured"].reason
     assert plans["grouped"].glossy and plans["grouped"].roughness == pytest.approx(0.2)
-    assert plans["grouped"].metallic == 1.0
+    assert plans["grouped"].metallic == 1.0 and plans["grouped"].textured == []
     assert plans["mixed"].glossy and plans["mixed"].metallic == 0.0  # a diffuse beside: not a metal
     assert plans["mixed"].textured == []  # the factor is textured, no BSDF input is
     assert plans["metal"].glossy and plans["matte"].irradiance_only and not plans["matte"].glossy
@@ -180,8 +183,8 @@ def _render(scene, path, samples):
 
 
 def _bake(scene, tmp_path, **settings):
-    plan = build_plan(scene, BakeSettings.from_preset("draft", lightfield_resolution=8, samples=16, sg_count=4,
-                                                      training_budget_s=4.0, **settings))
+    settings = {"lightfield_resolution": 8, "samples": 16, "sg_count": 4, "training_budget_s": 8.0, **settings}
+    plan = build_plan(scene, BakeSettings.from_preset("draft", **settings))
     capture(scene, plan, tmp_path)
     render_stage(scene, plan, tmp_path)
     from training.train_stage import train_stage
@@ -202,7 +205,7 @@ def test_textured_colour_roughness_and_normal_keep_driving_the_baked_copy(tmp_pa
     Range and a bump map of stripes. The capture measures the roughness per texel; the baked copy still reads every
     texture (its sockets linked as in the original), and a Cycles render of it follows the textures: its correlation
     with the path-traced reference over the plane stays above 0.9, where shading the same bake with the material's
-    constants (the old write-back) cannot follow them. Remove restores the material exactly."""
+    constants (the old write-back) falls at least 0.2 lower. Remove restores the material exactly."""
     mat, bsdf = _principled("Textured", Metallic=0.0)
     tree = mat.node_tree
     image = bpy.data.images.new("test grid", 128, 128)
@@ -275,13 +278,6 @@ def test_textured_colour_roughness_and_normal_keep_driving_the_baked_copy(tmp_pa
     with_textures, with_constants = _correlation(luminance[0], luminance[1]), _correlation(luminance[0], luminance[2])
     assert with_textures > 0.9, (with_textures, with_constants)
     assert with_constants < with_textures - 0.2, (with_textures, with_constants)
-    # The bump map's stripes: the reference's high frequencies (rows minus their blurred selves) are in ours
-    def detail(img):
-        blurred = (np.roll(img, 2, 0) + np.roll(img, -2, 0) + np.roll(img, 2, 1) + np.roll(img, -2, 1)) / 4
-        return (img - blurred)[4:-4, 4:-4]
-
-    assert _correlation(detail(luminance[0]), detail(luminance[1])) > 0.5
-
     assert remove_bake(scene) == 1
     assert plane.material_slots[0].material == mat and _material_fingerprint(mat) == before
     assert mesh_fingerprint(plane.data) == mesh_before and BAKE_RECORD_KEY not in scene
@@ -293,11 +289,9 @@ def test_node_group_with_per_pixel_inputs_matches_its_numpy_reference_in_cycles(
     """The parity test of tests/test_apply.py with the group's Normal, Roughness, F0 and Albedo fed per pixel by
     images (as a baked copy feeds them from the user's textures) instead of constants: each pixel's own inputs go
     into the numpy reference, from roughness 0 (floored) to 1 and from facing to grazing normals."""
-    from shaders.exr_io import write_exr
-    from shaders.node_group import SGTextureLayout, build_node_group
+    from shaders.node_group import SGTextureLayout
     from shaders.sg_shading import NumpyOps, encode_sharpness, shade
-    from shaders.sg_textures import pack_tiles
-    from tests.test_apply import _parity_scene
+    from tests.test_apply import parity_group, parity_scene
 
     n, h, w = 2, 8, 8
     rng = np.random.default_rng(7)
@@ -308,21 +302,8 @@ def test_node_group_with_per_pixel_inputs_matches_its_numpy_reference_in_cycles(
         cells[("sg", j)] = np.concatenate([rng.normal(size=(h, w, 3)), encode_sharpness(sharpness)[..., None]], -1)
         cells[("amp", j)] = np.concatenate([rng.uniform(0, 5, (h, w, 3)), np.zeros((h, w, 1))], -1)
     cells[("irradiance", 0)] = np.concatenate([rng.uniform(0, 3, (h, w, 3)), np.ones((h, w, 1))], -1)
-    tiles = {key: np.repeat(np.repeat(value, 2, axis=0), 2, axis=1) for key, value in cells.items()}
-    path = write_exr(tmp_path / "packed.exr", pack_tiles(layout, tiles, (2 * h, 2 * w)), precision="half",
-                     channels=["R", "G", "B", "A"])
-    stored, _, _ = read_exr(path, channels=["R", "G", "B", "A"])
-    image = bpy.data.images.load(str(path))
-    image.colorspace_settings.name, image.alpha_mode = "Non-Color", "CHANNEL_PACKED"
-    group = build_node_group(image, layout, [], name="SG Lightfield per-pixel parity")
-    scene, node = _parity_scene(group, w, h)
-    columns, rows = layout.grid
-
-    def lookup(kind, j):
-        col, row_from_bottom = layout.tile_offset(kind, j)
-        top = (rows - 1 - row_from_bottom) * 2 * h
-        texel = stored[top:top + 2 * h:2, col * 2 * w:(col + 1) * 2 * w:2].astype(np.float64)
-        return texel[..., :3], texel[..., 3]
+    group, lookup = parity_group(tmp_path, layout, cells, [], "SG Lightfield per-pixel parity")
+    scene, node = parity_scene(group, w, h)
 
     # Per-pixel inputs, row 0 = top (the render's first row); roughness spans 0..1, normals up to 85 degrees
     roughness = rng.uniform(0, 1, (h, w))
@@ -411,3 +392,39 @@ def test_the_materials_demo_bakes_keeps_every_look_and_compares_with_eevee_alone
     remove_bake(scene)
     assert {m.name: _material_fingerprint(m) for m in materials} == before
     assert set(bpy.data.node_groups.keys()) - group_before == set()
+
+
+@pytest.mark.slow
+def test_a_bump_mapped_glossy_metal_shows_its_highlights_where_the_bumps_tilt_it(tmp_path):
+    """A metal plane of one colour (roughness 0.2) whose only pattern is a bump map of wave stripes, under an area
+    lamp: in the path-traced reference the stripes are bright where they tilt towards the lamp. The baked copy feeds
+    the bump's normal to the SG evaluator, so its render follows the stripes (correlation with the reference above
+    0.75; measured 0.89-0.95); the same bake shaded with the flat normal cannot (0.35-0.38; at least 0.3 lower)."""
+    mat, bsdf = _principled("Bumped Metal", Metallic=1.0, Roughness=0.2)
+    bsdf.inputs["Base Color"].default_value = (0.9, 0.8, 0.6, 1.0)
+    tree = mat.node_tree
+    wave = tree.nodes.new("ShaderNodeTexWave")
+    wave.inputs["Scale"].default_value = 2.0
+    bump = tree.nodes.new("ShaderNodeBump")
+    bump.inputs["Strength"].default_value = 1.0
+    bump.inputs["Distance"].default_value = 0.05
+    tree.links.new(wave.outputs["Fac"], bump.inputs["Height"])
+    tree.links.new(bump.outputs["Normal"], bsdf.inputs["Normal"])
+    plane = _plane("Bumped Plane", mat)
+    scene = _lit_scene(plane, name="bump test")
+    _bake(scene, tmp_path, texel_density=8.0)
+    baked = plane.material_slots[0].material
+    group_node = next(n for n in baked.node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
+    assert group_node.inputs["Normal"].links[0].from_node.name == "Bump"
+    ours = _render(scene, tmp_path / "ours.exr", 32)
+    flat_normal = baked.node_tree.nodes.new("ShaderNodeNewGeometry")
+    baked.node_tree.links.new(flat_normal.outputs["Normal"], group_node.inputs["Normal"])
+    flat = _render(scene, tmp_path / "flat.exr", 32)
+    plane.material_slots[0].material = mat
+    reference = _render(scene, tmp_path / "reference.exr", 256)
+    plane.material_slots[0].material = baked
+    inside = slice(6, 58)
+    luminance = [img[inside, inside] @ np.array([0.2126, 0.7152, 0.0722]) for img in (reference, ours, flat)]
+    with_bump, without = _correlation(luminance[0], luminance[1]), _correlation(luminance[0], luminance[2])
+    assert with_bump > 0.75 and without < with_bump - 0.3, (with_bump, without)
+    remove_bake(scene)
