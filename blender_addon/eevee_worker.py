@@ -39,7 +39,8 @@ PROBE_MARGIN = 1.1  # the volume probe covers the scene's bounding box and 10 % 
 
 
 def restore_originals(scene):
-    """The original materials back in the slots the bake switched."""
+    """The original materials back in the slots the bake switched (apply.baked_slots' reading of the record: this
+    script runs without the add-on on its path)."""
     for object_name, slots in json.loads(scene.get(BAKE_RECORD_KEY, "{}")).items():
         obj = scene.objects.get(object_name)
         for index, original in slots.items():
@@ -54,6 +55,8 @@ def best_lighting(scene):
     eevee.use_fast_gi = True
     corners = [obj.matrix_world @ Vector(c) for obj in scene.objects if obj.type == "MESH" and not obj.hide_render
                for c in obj.bound_box]
+    if not corners:  # nothing for probes to capture
+        return
     lo = Vector([min(c[i] for c in corners) for i in range(3)])
     hi = Vector([max(c[i] for c in corners) for i in range(3)])
     centre, half = (lo + hi) / 2, (hi - lo) / 2 * PROBE_MARGIN
@@ -75,6 +78,8 @@ def best_lighting(scene):
                                    selected_objects=[volume, sphere]):
         bpy.ops.object.lightprobe_cache_bake(subset="ALL")
     print(f"PROBE BAKE SECONDS {time.perf_counter() - start:.3f}", flush=True)
+
+
 if bpy.data.filepath != ns.blend:
     bpy.ops.wm.open_mainfile(filepath=ns.blend)
 scene = bpy.data.scenes[ns.scene]

@@ -41,13 +41,14 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.exr_io import read_exr
     from .render import compute_device, quiet_stdout, render_still
     from .scene_analysis import active_scene, empty_node_material, principled_surface
-    from .surface_shaders import BAKED_BSDFS, KEPT_SHADERS, LeafInputs, copy_material, leaves, rewrite_surface
+    from .surface_probe import probe_material
+    from .surface_shaders import BAKED_BSDFS, leaves
 except ImportError:  # bpy as a module with the repository on sys.path
     from blender_addon.apply import BAKE_RECORD_KEY, baked_slots
     from blender_addon.render import compute_device, quiet_stdout, render_still
     from blender_addon.scene_analysis import active_scene, empty_node_material, principled_surface
-    from blender_addon.surface_shaders import (BAKED_BSDFS, KEPT_SHADERS, LeafInputs, copy_material, leaves,
-                                               rewrite_surface)
+    from blender_addon.surface_probe import probe_material
+    from blender_addon.surface_shaders import BAKED_BSDFS, leaves
     from shaders.exr_io import read_exr
     from shaders.bake_plan import BakeInputError
     from shaders.bake_report import save_png, update_report
@@ -166,20 +167,17 @@ def surface_images(scene, camera, path) -> tuple[np.ndarray, np.ndarray, list[st
 
 
 def _surface_id_material(original, number: float):
-    """An emission material showing (roughness, number, 0): a copy of `original` whose baked BSDFs emit their own
-    per-pixel roughness (textures included; Mix Shaders blend it), or, for a material without one, its constant."""
+    """An emission material showing (roughness, number, 0): a probe copy of `original` whose baked BSDFs emit their
+    own per-pixel roughness (textures included; Mix Shaders blend it) and its emitters roughness 1, or, for a material
+    without a baked BSDF, its constant. Returns (material, node-group copies made for it)."""
     if original is not None and leaves(original):
-        material = copy_material(original, " (SGLF roughness)")
-
-        def build_leaf(tree, node):
-            inputs = LeafInputs(tree, node)
+        def emit(inputs, node):
             combine = inputs._new("ShaderNodeCombineColor")
             inputs.feed(combine.inputs[0], inputs.roughness() if node.type in BAKED_BSDFS else 1.0)
             combine.inputs[1].default_value = number
-            return inputs.emission_of(combine.outputs[0])
+            return combine.outputs[0]
 
-        groups = rewrite_surface(material, build_leaf, suffix=" (SGLF roughness)", kinds=BAKED_BSDFS | KEPT_SHADERS)
-        return material, groups
+        return probe_material(original, " (SGLF roughness)", emit)
     material = empty_node_material("SGLF roughness")
     nodes = material.node_tree.nodes
     emission = nodes.new("ShaderNodeEmission")

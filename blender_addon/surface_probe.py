@@ -41,21 +41,25 @@ def _quantity(inputs: LeafInputs, name: str):
     return inputs.base_colour() if name == "base" else inputs.f0()
 
 
-def _probe_material(original, name: str):
-    """A copy of `original` whose baked BSDFs emit one quantity and whose own emitters emit nothing, with an active
-    Image Texture node for the bake to write into."""
-    material = copy_material(original, f"{PROBE_SUFFIX} {name}")
+def probe_material(original, suffix: str, emit, kinds=BAKED_BSDFS | KEPT_SHADERS):
+    """A copy of `original` (named NAME + suffix) whose shaders of `kinds` are each replaced by an Emission of
+    emit(LeafInputs, node) (a socket or a constant colour), with an active Image Texture node for a bake to write
+    into. Returns (material, the node-group copies made for it)."""
+    material = copy_material(original, suffix)
 
     def build_leaf(tree, node):
         inputs = LeafInputs(tree, node)
-        if node.type in KEPT_SHADERS:
-            return inputs.emission_of((0.0, 0.0, 0.0))
-        return inputs.emission_of(_quantity(inputs, name))
+        return inputs.emission_of(emit(inputs, node))
 
-    groups = rewrite_surface(material, build_leaf, suffix=f"{PROBE_SUFFIX} {name}", kinds=BAKED_BSDFS | KEPT_SHADERS)
-    target = material.node_tree.nodes.new("ShaderNodeTexImage")
-    material.node_tree.nodes.active = target
+    groups = rewrite_surface(material, build_leaf, suffix=suffix, kinds=kinds)
+    material.node_tree.nodes.active = material.node_tree.nodes.new("ShaderNodeTexImage")
     return material, groups
+
+
+def _probe_material(original, name: str):
+    """The probe of one PASSES quantity: baked BSDFs emit it, the material's own emitters emit nothing."""
+    return probe_material(original, f"{PROBE_SUFFIX} {name}",
+                          lambda inputs, node: (0.0, 0.0, 0.0) if node.type in KEPT_SHADERS else _quantity(inputs, name))
 
 
 def _bake_tile(scene, obj, tile, image, material_for_slot) -> np.ndarray:
