@@ -62,13 +62,8 @@ class Leaf:
 @dataclass
 class SurfaceAnalysis:
     leaves: list[Leaf] = field(default_factory=list)
-    kept: list[str] = field(default_factory=list)  # node types shown as they are (emission, holdout)
     renderer_reasons: list[str] = field(default_factory=list)  # why the renderer keeps the whole material
     emissive: bool = False
-
-    @property
-    def linked_inputs(self) -> list[str]:
-        return sorted({name for leaf in self.leaves for name in leaf.linked})
 
 
 def _link(socket):
@@ -205,8 +200,7 @@ def analyse_surface(material) -> SurfaceAnalysis:
         seen.add(key)
         if node.mute:
             result.renderer_reasons.append(f"'{node.name}': muted node in the surface")
-        elif node.type in KEPT_SHADERS:
-            result.kept.append(node.type)
+        elif node.type in KEPT_SHADERS:  # shown as they are
             if node.type == "EMISSION":
                 strength, strength_linked = input_constant(node, "Strength", 0.0)
                 color, color_linked = input_constant(node, "Color", (0.0, 0.0, 0.0, 1.0))
