@@ -1,9 +1,13 @@
 """Capture stage: lightmap UVs (xatlas) and per-texel maps of every baked object (DESIGN section 2).
 
-What it changes in the scene: one UV layer ``SGLightmap`` on each baked mesh (made by xatlas, never
-one of the user's layers; ``remove_lightmap_uvs`` takes it away again) and one custom property
-``sglf_lightmap_rect`` per baked object: (u0, v0, su, sv) mapping that mesh layout into the object's
-own tile of the shared atlas, so linked duplicates keep sharing their mesh yet get texels of their own.
+What it changes in the scene (``remove_lightmap_uvs`` takes all of it away again):
+- a plain mesh (no modifiers) gets one UV layer ``SGLightmap`` on its mesh data, made by xatlas, never one of the
+  user's layers; linked duplicates share it;
+- an object with modifiers, a text or a curve, or a mesh whose quads xatlas would split across charts, gets the
+  same layer from a last, removable ``SG Lightmap UV`` modifier (lightmap_modifier), so its stack stays live;
+- every baked object gets its tile of the shared atlas as two custom properties (sglf_lightmap_offset and
+  sglf_lightmap_scale: atlas_uv = offset + uv * scale), so duplicates get texels of their own.
+Geometry is captured as a render evaluates it (modifiers shown for rendering, subdivision at render levels).
 
 What it writes to the bake directory:
   texels.exr    float32 atlas maps (channels in TEXEL_CHANNELS), row 0 = top = v near 1
@@ -17,6 +21,7 @@ below the real surface, and rays leaving along a smoothed normal would start ins
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from dataclasses import asdict, dataclass, field
@@ -37,8 +42,12 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.texel_raster import centre_overlap_count, dilate, rasterize, shelf_pack, signed_areas
     from .scene_analysis import (active_scene, loop_triangle_arrays, principled_surface, transform_points,
                                  triangle_areas, unbaked)
+    from . import lightmap_modifier
+    from .lightmap_modifier import user_modifiers
     from .surface_probe import measure_surfaces
 except ImportError:  # bpy as a module with the repository on sys.path
+    from blender_addon import lightmap_modifier
+    from blender_addon.lightmap_modifier import user_modifiers
     from blender_addon.surface_probe import measure_surfaces
     from blender_addon.scene_analysis import (active_scene, loop_triangle_arrays, principled_surface,
                                               transform_points, triangle_areas, unbaked)
@@ -160,12 +169,14 @@ def ensure_lightmap_layer(mesh, loop_uv) -> None:
 
 
 def remove_lightmap_uvs(scene) -> int:
-    """Undo capture's changes: drop the SGLightmap layers and tile rectangles it added. Returns the count."""
+    """Undo capture's changes: drop the SGLightmap layers, SG Lightmap UV modifiers (with their carriers) and tile
+    rectangles it added. Returns the count of layers and modifiers removed."""
     removed = 0
     for obj in scene.objects:
         for key in TILE_KEYS:
             if key in obj:
                 del obj[key]
+        removed += lightmap_modifier.detach(obj)
         mesh = obj.data if obj.type == "MESH" else None
         if mesh is not None and mesh.get(OWNER_KEY) == LIGHTMAP_LAYER:
             layer = mesh.uv_layers.get(LIGHTMAP_LAYER)
@@ -227,74 +238,169 @@ def _object_material_ids(obj, materials):
     return np.array([by_name[n] for n in slots] or [by_name["(no material)"]], np.int64)
 
 
+def _needs_modifier(obj, lightmap_uv_layer) -> bool:
+    """Objects whose rendered surface is not their mesh data take the lightmap UV from the modifier."""
+    if obj.type != "MESH":
+        return True
+    return bool(user_modifiers(obj)) and not lightmap_uv_layer
+
+
+def _layout_overlap(uv_triangles, width, height) -> float:
+    """Share of a layout's covered texel centres (at width x height texels) that two triangles claim."""
+    px = np.stack([uv_triangles[..., 0] * width, (1 - uv_triangles[..., 1]) * height], axis=-1)
+    claimed = centre_overlap_count(px, width, height)
+    return np.count_nonzero(claimed > 1) / max(np.count_nonzero(claimed), 1)
+
+
+def _tile_sizes(uv_triangles, width, height, scales, name, warnings):
+    """Tile sizes of the instances sharing one layout: `scales` of the reference layout (width x height texels),
+    each grown until its charts keep texels of their own (small objects, small duplicates of a big one)."""
+    sizes = []
+    for scale in scales:
+        while True:
+            w, h = max(1, math.ceil(width * scale)), max(1, math.ceil(height * scale))
+            if scale >= 1.0 or _layout_overlap(uv_triangles, w, h) <= MAX_OVERLAP_FRACTION:
+                break
+            scale = min(1.0, scale * 1.25)
+        sizes.append((w, h))
+    overlap = _layout_overlap(uv_triangles, width, height)
+    if overlap > MAX_OVERLAP_FRACTION:
+        warnings.append(f"'{name}': {100 * overlap:.1f}% of its lightmap texels are shared by two charts at "
+                        f"{width} x {height} texels; raise its {TEXEL_SCALE_KEY} for a cleaner bake")
+    return sizes
+
+
+def _densities(users, coords, verts, local_area, settings, matrices=None):
+    """Texels per object-space unit of each user (world area over local area, times the object's texel scale)."""
+    densities = []
+    for k, obj in enumerate(users):
+        matrix = obj.matrix_world if matrices is None else matrices[k]
+        world_area = float(triangle_areas(transform_points(matrix, coords), verts).sum())
+        densities.append(settings.texel_density * _texel_scale(obj) * math.sqrt(world_area / local_area))
+    return densities
+
+
+def _check_size(name, local_area, reference, settings):
+    if local_area * reference**2 > MAX_ATLAS_SIDE**2:
+        raise BakeInputError(f"'{name}' would need {local_area * reference**2:.3g} texels at "
+                             f"{settings.texel_density:g} texels/m; lower the texel density or its {TEXEL_SCALE_KEY}")
+
+
 def _plan_layout(objects, settings, lightmap_uv_layer, warnings):
-    """Lightmap UVs per mesh and one atlas tile per object; returns tiles (mesh layer written)."""
+    """Lightmap UVs and one atlas tile per object; returns tiles. Plain meshes get the UV layer SGLightmap on their
+    mesh data (linked duplicates share it); everything else gets it from the SG Lightmap UV modifier."""
     groups: dict = {}
+    modified = [obj for obj in objects if _needs_modifier(obj, lightmap_uv_layer)]
     for obj in objects:
-        groups.setdefault(obj.data.name, []).append(obj)
-    sizes, pending = [], []
+        if obj not in modified:
+            groups.setdefault(obj.data.name, []).append(obj)
+    layouts = {}  # object name -> (layer, width, height, scale)
     for mesh_name, users in groups.items():
         mesh = users[0].data
         loops, verts, _, coords = loop_triangle_arrays(mesh)
         local_area = float(triangle_areas(coords, verts).sum())
         if local_area <= 0:
             raise BakeInputError(f"'{users[0].name}': mesh '{mesh_name}' has no faces with area")
-        densities = []  # texels per object-space unit, per instance
-        for obj in users:
-            world_area = float(triangle_areas(transform_points(obj.matrix_world, coords), verts).sum())
-            densities.append(settings.texel_density * _texel_scale(obj) * math.sqrt(world_area / local_area))
+        densities = _densities(users, coords, verts, local_area, settings)
         if lightmap_uv_layer:
-            sides = [_validate_user_layer(obj, loops, lightmap_uv_layer,
-                                          local_area * (d / settings.texel_density) ** 2, settings.texel_density)
-                     for obj, d in zip(users, densities)]
-            for obj, side in zip(users, sides):
-                pending.append((obj, lightmap_uv_layer))
-                sizes.append((side, side))
+            for obj, d in zip(users, densities):
+                side = _validate_user_layer(obj, loops, lightmap_uv_layer, local_area * (d / settings.texel_density) ** 2,
+                                            settings.texel_density)
+                layouts[obj.name] = (lightmap_uv_layer, [(side, side)])
             continue
         reference = max(densities)
-        if local_area * reference**2 > MAX_ATLAS_SIDE**2:
-            raise BakeInputError(f"'{users[0].name}' would need {local_area * reference**2:.3g} texels at "
-                                 f"{settings.texel_density:g} texels/m; lower the texel density or its "
-                                 f"{TEXEL_SCALE_KEY}")
+        _check_size(users[0].name, local_area, reference, settings)
         loop_uv, (width, height), conflicts = _xatlas_layout(mesh, loops, verts, coords, reference)
-        if conflicts:
-            warnings.append(f"mesh '{mesh_name}': {conflicts} n-gon triangle(s) were split across charts; "
-                            "triangulate those faces for a clean lightmap")
+        if conflicts:  # a quad or n-gon split across charts: only a triangulated copy can hold one UV per corner
+            modified.extend(users)
+            continue
+        for obj in users:
+            lightmap_modifier.detach(obj)  # an earlier bake's, now that the object renders its mesh data
         ensure_lightmap_layer(mesh, loop_uv)
-        for obj, density in zip(users, densities):
-            scale = density / reference
-            pending.append((obj, LIGHTMAP_LAYER))
-            sizes.append((max(1, math.ceil(width * scale)), max(1, math.ceil(height * scale))))
+        sizes = _tile_sizes(loop_uv[loops], width, height, [d / reference for d in densities], users[0].name, warnings)
+        for obj, size in zip(users, sizes):
+            layouts[obj.name] = (LIGHTMAP_LAYER, [size])
+    if modified:
+        for obj in modified:
+            lightmap_modifier.attach(obj)
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        depsgraph.update()
+        for obj in modified:
+            evaluated = obj.evaluated_get(depsgraph)
+            mesh = evaluated.to_mesh()
+            try:
+                loops, verts, _, coords = loop_triangle_arrays(mesh)
+                local_area = float(triangle_areas(coords, verts).sum()) if len(verts) else 0.0
+                if local_area <= 0:
+                    raise BakeInputError(f"'{obj.name}': its evaluated {obj.type.lower()} has no faces with area")
+                (density,) = _densities([obj], coords, verts, local_area, settings, [evaluated.matrix_world])
+                _check_size(obj.name, local_area, density, settings)
+                loop_uv, (width, height), _ = _xatlas_layout(mesh, loops, verts, coords, density)
+                lightmap_modifier.set_carrier(obj, mesh, loop_uv)
+            finally:
+                evaluated.to_mesh_clear()
+            layouts[obj.name] = (LIGHTMAP_LAYER, _tile_sizes(loop_uv[loops], width, height, [1.0], obj.name, warnings))
+        lightmap_modifier.remove_orphans()
+    pending = [(obj, *layouts[obj.name]) for obj in objects]
+    sizes = [size[0] for _, _, size in pending]
     try:
         positions, atlas_w, atlas_h = shelf_pack(sizes, border=1, max_side=MAX_ATLAS_SIDE)
     except ValueError as exc:
         raise BakeInputError(f"the lightmap atlas is too large ({exc}); lower the texel density") from exc
     tiles = []
-    for i, ((obj, layer), (x, y), (w, h)) in enumerate(zip(pending, positions, sizes)):
+    for i, ((obj, layer, _), (x, y), (w, h)) in enumerate(zip(pending, positions, sizes)):
         rect = (x / atlas_w, (atlas_h - y - h) / atlas_h, w / atlas_w, h / atlas_h)
         tiles.append(ObjectTile(i + 1, obj.name, obj.data.name, layer, rect, (x, y, w, h)))
     return tiles, atlas_w, atlas_h
 
 
+@contextlib.contextmanager
+def render_evaluation(objects):
+    """Evaluate `objects` as a render does for the block: each modifier shown as for rendering and subdivision at its
+    render levels (the viewport may show fewer). Every setting comes back afterwards."""
+    saved = []
+    try:
+        for obj in objects:
+            for modifier in getattr(obj, "modifiers", ()):
+                if modifier.show_viewport != modifier.show_render:
+                    saved.append((modifier, "show_viewport", modifier.show_viewport))
+                    modifier.show_viewport = modifier.show_render
+                if modifier.type in ("SUBSURF", "MULTIRES") and modifier.levels != modifier.render_levels:
+                    saved.append((modifier, "levels", modifier.levels))
+                    modifier.levels = modifier.render_levels
+            data = obj.data
+            if obj.type in ("CURVE", "FONT") and data.render_resolution_u and \
+                    data.resolution_u != data.render_resolution_u:
+                saved.append((data, "resolution_u", data.resolution_u))
+                data.resolution_u = data.render_resolution_u
+        yield
+    finally:
+        for owner, name, value in reversed(saved):
+            setattr(owner, name, value)
+
+
 def scene_bvh(scene, depsgraph):
-    """World-space BVH of every visible mesh (winding made outward for negative scale) and the length of
-    the scene's bounding-box diagonal."""
+    """World-space BVH of everything that renders a surface (meshes, curves, text, instances; winding made outward
+    for negative scale) and the length of the scene's bounding-box diagonal."""
     vertices, polygons, offset = [], [], 0
-    for obj in scene.objects:
-        if obj.type != "MESH" or obj.hide_render:
+    for instance in depsgraph.object_instances:
+        obj = instance.object
+        if obj.type not in ("MESH", "CURVE", "FONT", "SURFACE", "META") or obj.original.hide_render:
             continue
-        evaluated = obj.evaluated_get(depsgraph)
-        mesh = evaluated.to_mesh()
+        mesh = obj.to_mesh()
         try:
+            if mesh is None or len(mesh.polygons) == 0:
+                continue
             _, verts, _, coords = loop_triangle_arrays(mesh)
-            world = transform_points(evaluated.matrix_world, coords)
-            if np.linalg.det(np.array(evaluated.matrix_world)[:3, :3]) < 0:
+            matrix = instance.matrix_world
+            world = transform_points(matrix, coords)
+            if np.linalg.det(np.array(matrix)[:3, :3]) < 0:
                 verts = verts[:, ::-1]
             vertices.append(world)
             polygons.append(verts + offset)
             offset += len(world)
         finally:
-            evaluated.to_mesh_clear()
+            obj.to_mesh_clear()
     if not vertices:
         return None, 0.0
     points = np.concatenate(vertices)
@@ -389,11 +495,12 @@ def _rasterize_object(obj, tile, depsgraph, material_ids, atlas_w, atlas_h, maps
     degenerate = np.where(~usable[:, None, None], np.nan, 0.0)
     claimed = centre_overlap_count(px[usable], atlas_w, atlas_h)
     overlap = np.count_nonzero(claimed > 1) / max(np.count_nonzero(claimed), 1)
-    if overlap > MAX_OVERLAP_FRACTION:
-        modifiers = ", ".join(m.name for m in obj.modifiers if m.show_render) or "none"
-        raise BakeInputError(f"'{obj.name}': its lightmap UVs overlap after modifiers ({100 * overlap:.1f}% of its "
-                             f"texels are claimed twice; modifiers: {modifiers}); apply mirroring or array "
-                             "modifiers before baking")
+    if overlap > MAX_OVERLAP_FRACTION and tile.uv_layer != LIGHTMAP_LAYER:  # a user-chosen layer
+        modifiers = ", ".join(m.name for m in user_modifiers(obj) if m.show_render)
+        raise BakeInputError(f"'{obj.name}': its UV layer '{tile.uv_layer}' overlaps itself "
+                             + (f"after its modifiers ({modifiers}) " if modifiers else "")
+                             + f"({100 * overlap:.1f}% of its texels are claimed twice); a lightmap layer needs a "
+                             "unique layout; leave the lightmap layer empty to let SG Lightfield lay one out")
     raster = rasterize(px + degenerate, atlas_w, atlas_h)  # NaN corners: skipped by the rasteriser
     rows, cols = np.nonzero(raster.covered)
     inside_tile = (cols >= x) & (cols < x + w) & (rows >= y) & (rows < y + h)
@@ -431,7 +538,7 @@ def capture(scene, plan, out_dir, *, lightmap_uv_layer: str = "", progress=_noop
     objects = [scene.objects[o.name] for o in plan.baked_objects]
     warnings: list[str] = []
     progress(0.0, "lightmap UVs")
-    with active_scene(scene):
+    with active_scene(scene), render_evaluation(objects):
         tiles, atlas_w, atlas_h = _plan_layout(objects, plan.settings, lightmap_uv_layer, warnings)
         for obj, tile in zip(objects, tiles):
             u0, v0, su, sv = tile.rect
@@ -463,7 +570,7 @@ def capture(scene, plan, out_dir, *, lightmap_uv_layer: str = "", progress=_noop
             scene, objects, tiles, (atlas_h, atlas_w), maps["object_id"], lambda material: material.name in textured)
         maps["measured"] = measured & covered
         progress(0.5, "push-out of texels inside geometry")
-        bvh, scene_size = scene_bvh(scene, depsgraph)
+        bvh, scene_size = scene_bvh(scene, bpy.context.evaluated_depsgraph_get())  # the probes changed the scene
     rows, cols = np.nonzero(covered)
     offset = ray_offset(maps["P"][rows, cols], maps["texel_size"][rows, cols])
     if should_cancel():

@@ -30,7 +30,7 @@ except ImportError:  # bpy as a module with the repository on sys.path
     from blender_addon.scene_analysis import empty_node_material, enable_nodes
     from shaders.bake_plan import BakeInputError
 
-DEMO_SCENES = ("spheres", "room", "courtyard", "materials", "hair")
+DEMO_SCENES = ("spheres", "room", "courtyard", "materials", "geometry", "hair")
 HAIR_STYLES = ("straight", "wavy", "curly", "clumped")
 DEMO_PREFIX = "demo:"
 
@@ -383,6 +383,55 @@ def build_materials(scene):
     _camera(scene, (2.6, -4.4, 2.3), (-0.2, 0.3, 0.4), lens=30.0)
 
 
+def _monkey(bm):
+    bmesh.ops.create_monkey(bm)
+
+
+def build_geometry(scene):
+    """What real scenes are built from, each glossy: a smooth-shaded monkey primitive (its quads split across
+    lightmap charts), a bar whose Bevel + Array + Subdivision stack stays live, an extruded text, a bevelled curve
+    and spheres instanced on a grid by Geometry Nodes, on a counter under an area lamp and a shipped HDRI."""
+    _mesh_object(scene, "Counter", _box(5.0, 3.0, 0.2), _principled("Counter Top", (0.55, 0.5, 0.45), roughness=0.35),
+                 Matrix.Translation((0.0, 0.0, -0.1)))
+    monkey = _mesh_object(scene, "Suzanne", _monkey, _principled("Red Plastic", (0.6, 0.05, 0.04), roughness=0.25),
+                          Matrix.Translation((-1.3, 0.2, 0.45)) @ Matrix.Rotation(-0.4, 4, "Z") @ Matrix.Scale(0.5, 4))
+    for poly in monkey.data.polygons:
+        poly.use_smooth = True
+    bar = _mesh_object(scene, "Bar", _box(0.3, 0.3, 0.3), _principled("Steel", (0.7, 0.72, 0.75), roughness=0.2,
+                                                                      metallic=1.0),
+                       Matrix.Translation((0.2, 0.9, 0.15)))
+    bevel = bar.modifiers.new("Bevel", "BEVEL")
+    bevel.width, bevel.segments = 0.03, 2
+    array = bar.modifiers.new("Array", "ARRAY")
+    array.count, array.relative_offset_displace = 4, (1.3, 0.0, 0.0)
+    subdivision = bar.modifiers.new("Subdivision", "SUBSURF")
+    subdivision.levels, subdivision.render_levels = 1, 2
+    text_data = bpy.data.curves.new("SG Text", "FONT")
+    text_data.body, text_data.extrude, text_data.size = "SG", 0.06, 0.8
+    text_data.materials.append(_principled("Gold", (1.0, 0.77, 0.34), roughness=0.25, metallic=1.0))
+    text = bpy.data.objects.new("Text", text_data)
+    text.matrix_world = Matrix.Translation((0.3, -0.4, 0.0))
+    scene.collection.objects.link(text)
+    curve_data = bpy.data.curves.new("Pipe", "CURVE")
+    curve_data.dimensions, curve_data.bevel_depth, curve_data.bevel_resolution = "3D", 0.04, 3
+    spline = curve_data.splines.new("BEZIER")
+    spline.bezier_points.add(2)
+    for point, (x, y, z) in zip(spline.bezier_points, ((-2.0, -1.0, 0.05), (-1.2, -0.6, 0.5), (-0.3, -1.1, 0.05))):
+        point.co = (x, y, z)
+        point.handle_left_type = point.handle_right_type = "AUTO"
+    curve_data.materials.append(_principled("Copper", (0.95, 0.64, 0.54), roughness=0.3, metallic=1.0))
+    pipe = bpy.data.objects.new("Pipe", curve_data)
+    scene.collection.objects.link(pipe)
+    lamp_data = bpy.data.lights.new("Area Lamp", type="AREA")
+    lamp_data.energy, lamp_data.size = 200.0, 1.0
+    lamp = bpy.data.objects.new("Area Lamp", lamp_data)
+    lamp.location = (1.0, -1.5, 2.5)
+    lamp.rotation_euler = (math.radians(30), math.radians(15), 0.0)
+    scene.collection.objects.link(lamp)
+    _world(scene, hdri="interior", strength=0.6)
+    _camera(scene, (2.2, -3.4, 2.0), (-0.2, 0.1, 0.2), lens=30.0)
+
+
 # Modifier stacks per style: (asset node group, {input name: value}) after Generate Hair Curves.
 _HAIR_STYLE_STACKS = {
     "straight": [("Hair Curves Noise", {"Distance": 0.002, "Scale": 4.0})],
@@ -456,7 +505,7 @@ def build_hair(scene, style="wavy"):
 
 
 _BUILDERS = {"spheres": build_spheres, "room": build_room, "courtyard": build_courtyard, "materials": build_materials,
-             "hair": build_hair}
+             "geometry": build_geometry, "hair": build_hair}
 
 
 def build_demo_scene(name: str):

@@ -22,11 +22,13 @@ from pathlib import Path
 try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
     from . import apply as apply_module
+    from . import lightmap_modifier
     from .capture import LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, capture, remove_lightmap_uvs
     from .render import render_steps
     from .scene_analysis import build_plan
 except ImportError:  # bpy as a module with the repository on sys.path
     from blender_addon import apply as apply_module
+    from blender_addon import lightmap_modifier
     from blender_addon.capture import LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, capture, remove_lightmap_uvs
     from blender_addon.render import render_steps
     from blender_addon.scene_analysis import build_plan
@@ -122,18 +124,24 @@ class BakeJob:
             apply_module.remove_bake(self.scene)  # undo the slots a failed or stopped apply already switched
         if self._captured_here and not self._applied:
             self._restore_lightmaps()
+        self._release_snapshot()
         self.done = True
 
     def _snapshot_lightmaps(self):
-        """What capture will overwrite: each mesh's SGLightmap layer (when an earlier bake made one) and each
-        object's tile properties, so a cancel can put back a previous bake exactly."""
+        """What capture will overwrite: each mesh's SGLightmap layer (when an earlier bake made one), each SG Lightmap
+        UV modifier's carrier mesh and each object's tile properties, so a cancel can put back a previous bake
+        exactly."""
         import numpy as np
 
-        snapshot = {"meshes": {}, "objects": {}}
+        snapshot = {"meshes": {}, "objects": {}, "carriers": {}}
         for obj in self.scene.objects:
+            carrier = lightmap_modifier.carrier_of(obj)
+            if carrier is not None:  # kept alive until the job ends: capture gives the carrier a new mesh
+                carrier.data.use_fake_user = True
+                snapshot["carriers"][obj.name] = carrier.data
+            snapshot["objects"][obj.name] = {k: list(obj[k]) for k in (OFFSET_KEY, SCALE_KEY) if k in obj}
             if obj.type != "MESH":
                 continue
-            snapshot["objects"][obj.name] = {k: list(obj[k]) for k in (OFFSET_KEY, SCALE_KEY) if k in obj}
             layer = obj.data.uv_layers.get(LIGHTMAP_LAYER)
             if layer is not None and obj.data.name not in snapshot["meshes"]:
                 uv = np.empty(len(obj.data.loops) * 2, np.float32)
@@ -143,18 +151,22 @@ class BakeJob:
 
     def _restore_lightmaps(self):
         snapshot = self._lightmap_snapshot
-        if not snapshot["meshes"]:
+        if not snapshot["meshes"] and not snapshot["carriers"]:
             remove_lightmap_uvs(self.scene)  # nothing was baked before: the scene had no lightmap data at all
             return
         for obj in self.scene.objects:
-            if obj.type != "MESH":
-                continue
             saved = snapshot["objects"].get(obj.name, {})
             for key in (OFFSET_KEY, SCALE_KEY):
                 if key in saved:
                     obj[key] = saved[key]
                 elif key in obj:
                     del obj[key]
+            if obj.name in snapshot["carriers"]:
+                lightmap_modifier.restore_carrier(obj, snapshot["carriers"][obj.name])
+            else:
+                lightmap_modifier.detach(obj)  # this job's capture added it
+            if obj.type != "MESH":
+                continue
             uv = snapshot["meshes"].get(obj.data.name)
             layer = obj.data.uv_layers.get(LIGHTMAP_LAYER)
             if uv is not None and layer is not None and len(uv) == 2 * len(obj.data.loops):
@@ -211,6 +223,17 @@ class BakeJob:
             self.results[stage] = result
             self.timings[stage] = time.perf_counter() - start
             yield stage, self._overall(stage, 1.0), f"{stage} done"
+        self._release_snapshot()
+
+    def _release_snapshot(self):
+        """The previous bake's carrier meshes were held for a cancel; once the job is over they may go."""
+        snapshot = getattr(self, "_lightmap_snapshot", None)
+        for mesh in (snapshot or {}).get("carriers", {}).values():
+            try:
+                mesh.use_fake_user = False
+            except ReferenceError:
+                pass
+        lightmap_modifier.remove_orphans()
 
     def _capture(self):
         yield "capture", self._overall("capture", 0.0), "lightmap UVs and texel maps"

@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
+from dataclasses import dataclass, field
 
 import bpy
 import numpy as np
@@ -14,8 +15,10 @@ import numpy as np
 try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.bake_plan import (GLOSSY_ROUGHNESS_MAX, ROUGH_METALLIC_MAX, BakeInputError, BakePlan, BakeSettings,
                                      EnvironmentPlan, MaterialPlan, ObjectPlan, auto_sg_count)
+    from .lightmap_modifier import MODIFIER_TYPES, user_modifiers
     from .surface_shaders import COPY_KEY, LeafInputs, NeedsNodes, analyse_surface, input_constant, leaves
 except ImportError:  # bpy as a module with the repository on sys.path
+    from blender_addon.lightmap_modifier import MODIFIER_TYPES, user_modifiers
     from blender_addon.surface_shaders import (COPY_KEY, LeafInputs, NeedsNodes, analyse_surface, input_constant,
                                                leaves)
     from shaders.bake_plan import (GLOSSY_ROUGHNESS_MAX, ROUGH_METALLIC_MAX, BakeInputError, BakePlan, BakeSettings,
@@ -161,6 +164,55 @@ def principled_surface(material) -> dict:
             "f0": [float(c) for c in np.clip(np.asarray(f0, float), 0.0, 1.0)], "textured": textured}
 
 
+@dataclass
+class Instanced:
+    """What one object instances (geometry nodes, a collection, particles, vertex or face instancing)."""
+    how: str
+    count: int = 0
+    sources: set = field(default_factory=set)  # the instanced objects' names; "generated geometry" for node output
+
+    def description(self) -> str:
+        return f"{self.count} {self.how} instance{'s' if self.count != 1 else ''} of {', '.join(sorted(self.sources))}"
+
+    def reason(self) -> str:
+        return (f"left to the renderer: {self.description()} (per-instance lightmaps are not built yet; each "
+                "instance keeps the renderer's own lighting)")
+
+
+def instances_by_instancer(depsgraph) -> dict:
+    """Instancer name -> Instanced, from the evaluated scene's instances."""
+    found = {}
+    for instance in depsgraph.object_instances:
+        if not instance.is_instance or instance.parent is None:
+            continue
+        parent = instance.parent.original
+        if instance.object.original == parent and parent.type != "MESH":
+            continue  # a text's, curve's or metaball's own surface, which Blender hands over as an instance
+        if parent.name not in found:
+            if parent.type == "EMPTY" and parent.instance_type == "COLLECTION":
+                how = "collection"
+            elif parent.type == "MESH" and parent.instance_type in ("VERTS", "FACES"):
+                how = "vertex" if parent.instance_type == "VERTS" else "face"
+            elif getattr(parent, "particle_systems", None) and len(parent.particle_systems):
+                how = "particle"
+            else:
+                how = "geometry nodes"
+            found[parent.name] = Instanced(how)
+        entry = found[parent.name]
+        entry.count += 1
+        source = instance.object.original
+        entry.sources.add(source.name if source != parent else "generated geometry")
+    return found
+
+
+def _why_no_surface(obj) -> str:
+    if obj.type == "CURVE":
+        return "no surface: a curve without bevel, extrusion or a profile renders nothing"
+    if obj.type == "FONT":
+        return "no surface: text without characters renders nothing"
+    return "no faces with area"
+
+
 def _is_emissive(material) -> bool:
     return material is not None and material.node_tree is not None and analyse_surface(material).emissive
 
@@ -294,39 +346,80 @@ def build_plan(scene, settings: BakeSettings) -> BakePlan:
         return _build_plan(scene, settings, depsgraph)
 
 
+GEOMETRY_KINDS = {"MESH": "mesh", "CURVE": "curve", "FONT": "text", "SURFACE": "NURBS surface", "META": "metaball"}
+
+
+def geometry_description(obj) -> str:
+    """What the bake sees of an object: its kind and the modifiers that render, e.g. 'mesh + Bevel, Array'."""
+    modifiers = [m.name for m in user_modifiers(obj) if m.show_render]
+    return GEOMETRY_KINDS[obj.type] + (" + " + ", ".join(modifiers) if modifiers else "")
+
+
 def _build_plan(scene, settings: BakeSettings, depsgraph) -> BakePlan:
     settings.validate()
     visible = [o for o in scene.objects if not o.hide_render]
-    meshes = [o for o in visible if o.type == "MESH"]
-    if not meshes:
+    shapes = [o for o in visible if o.type in GEOMETRY_KINDS]
+    if not shapes:
         kinds = sorted({o.type.lower() for o in visible})
-        raise BakeInputError("nothing to bake: the scene has no mesh objects"
+        raise BakeInputError("nothing to bake: the scene has no mesh, curve or text objects"
                              + (f" (only {', '.join(kinds)})" if kinds else " (it is empty)"))
     objects, emissive, warnings = [], [], []
-    for obj in meshes:
+    every_instancer = instances_by_instancer(depsgraph)
+    instances = dict(every_instancer)  # the ones not yet in the plan
+    for obj in shapes:
         mats = [slot.material for slot in obj.material_slots] or [None]
-        mat_plans = [analyse_material(m, settings) for m in mats]
+        surfaces = {m: analyse_material(m, settings) for m in dict.fromkeys(mats)}
+        mat_plans = [surfaces[m] for m in mats]
         if any(_is_emissive(unbaked(m)) for m in mats if m is not None):
             emissive.append(obj.name)
+        geometry = geometry_description(obj)
+        instanced = instances.pop(obj.name, None)
+        if obj.type not in MODIFIER_TYPES:
+            objects.append(ObjectPlan(obj.name, round(_world_area(obj, depsgraph), 6), 0, False, mat_plans,
+                                      f"left to the renderer: Blender cannot give a {geometry} the lightmap UV modifier;"
+                                      " Object > Convert > Mesh on a copy bakes it", geometry))
+            continue
         area = _world_area(obj, depsgraph)
         glossy = [mp.name for mp in mat_plans if mp.glossy]
         lightmapped = [mp.name for mp in mat_plans if mp.irradiance_only]
         baked = bool(glossy or lightmapped)
+        if instanced is not None:
+            geometry += f"; {instanced.description()}"
         if area <= 0:
-            warnings.append(f"'{obj.name}': no faces with area, skipped")
-            objects.append(ObjectPlan(obj.name, 0.0, 0, False, mat_plans, "no faces with area"))
+            why = instanced.reason() if instanced is not None else _why_no_surface(obj)
+            if baked and instanced is None:
+                warnings.append(f"'{obj.name}': {why}: nothing of it is baked")
+            objects.append(ObjectPlan(obj.name, 0.0, 0, False, mat_plans, why, geometry))
             continue
         texels = int(np.ceil(area * settings.texel_density**2)) if baked else 0
         reason = "; ".join(([f"glossy material(s): {', '.join(glossy)}"] if glossy else [])
                            + ([f"irradiance lightmap: {', '.join(lightmapped)}"] if lightmapped else [])) \
             or "no glossy or lightmapped material: not baked, left to the renderer's own lighting (" + \
             "; ".join(f"{mp.name}: {mp.reason}" for mp in mat_plans) + ")"
-        objects.append(ObjectPlan(obj.name, round(area, 6), texels, baked, mat_plans, reason))
+        if instanced is not None:
+            reason += f"; {instanced.reason()}"
+        objects.append(ObjectPlan(obj.name, round(area, 6), texels, baked, mat_plans, reason, geometry))
+    for name, instanced in sorted(instances.items()):  # empties instancing collections, and the like
+        objects.append(ObjectPlan(name, 0.0, 0, False, [], instanced.reason(), instanced.description()))
+    glossy_instances = sorted({source for o in every_instancer.values() for source in o.sources
+                               if bpy.data.objects.get(source) is not None and any(
+                                   analyse_material(s.material, settings).glossy
+                                   for s in bpy.data.objects[source].material_slots if s.material is not None)})
+    for obj in objects:
+        instancers = sorted(name for name, o in every_instancer.items()
+                            if obj.bake_lightfield and obj.name in o.sources and name != obj.name)
+        if instancers:
+            warnings.append(f"'{obj.name}' is baked and also instanced by {', '.join(instancers)}: its instances show "
+                            f"the lighting baked where '{obj.name}' itself stands")
+    if glossy_instances:
+        warnings.append("instances of glossy objects are not baked (per-instance lightmaps are not built yet): "
+                        + ", ".join(glossy_instances) + "; each keeps the renderer's own lighting")
     if not any(o.bake_lightfield for o in objects):
         left = sorted({mp.name for o in objects for mp in o.materials if mp.reason.startswith("left to the renderer")})
-        raise BakeInputError("nothing to bake: no mesh has a glossy material (roughness below "
+        raise BakeInputError("nothing to bake: no object has a glossy material (roughness below "
                              f"{GLOSSY_ROUGHNESS_MAX}) or a rough one to lightmap; the light field would not be used"
-                             + (f" (left to the renderer: {', '.join(left)}; see the plan for why)" if left else ""))
+                             + (f" (left to the renderer: {', '.join(left)}; see the plan for why)" if left else "")
+                             + (f"; {warnings[-1]}" if glossy_instances else ""))
     lamps = [o.name for o in visible if o.type == "LIGHT" and o.data.energy > 0]
     hair = [o.name for o in visible if o.type == "CURVES"]
     environment = analyse_environment(scene)

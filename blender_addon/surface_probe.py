@@ -10,6 +10,7 @@ BSDFs. Slots, selection and render settings are restored before returning, also 
 """
 from __future__ import annotations
 
+import contextlib
 import time
 
 import bpy
@@ -70,26 +71,52 @@ def _bake_tile(scene, obj, tile, image, material_for_slot) -> np.ndarray:
     if tuple(image.size) != (w, h):
         image.scale(w, h)
     undo = []
-    try:
-        for slot in obj.material_slots:
-            original = unbaked(slot.material) if slot.material is not None else None
-            if original is None:
-                continue
-            probe = material_for_slot(original)
-            probe.node_tree.nodes.active.image = image
-            undo.append((slot, slot.material))
-            slot.material = probe
-        with bpy.context.temp_override(scene=scene, view_layer=scene.view_layers[0], active_object=obj, object=obj,
-                                       selected_objects=[obj], selected_editable_objects=[obj]), quiet_stdout():
-            # texels whose centre misses every triangle (chart edges) get their nearest baked neighbour
-            bpy.ops.object.bake(type="EMIT", uv_layer=tile.uv_layer, margin=EDGE_MARGIN, margin_type="EXTEND",
-                                use_clear=True, target="IMAGE_TEXTURES")
-    finally:
-        for slot, material in reversed(undo):
-            slot.material = material
+    with _bake_target(scene, obj) as target:
+        try:
+            for slot in target.material_slots:
+                original = unbaked(slot.material) if slot.material is not None else None
+                if original is None:
+                    continue
+                probe = material_for_slot(original)
+                probe.node_tree.nodes.active.image = image
+                undo.append((slot, slot.material))
+                slot.material = probe
+            with bpy.context.temp_override(scene=scene, view_layer=scene.view_layers[0], active_object=target,
+                                           object=target, selected_objects=[target],
+                                           selected_editable_objects=[target]), quiet_stdout():
+                # texels whose centre misses every triangle (chart edges) get their nearest baked neighbour
+                bpy.ops.object.bake(type="EMIT", uv_layer=tile.uv_layer, margin=EDGE_MARGIN, margin_type="EXTEND",
+                                    use_clear=True, target="IMAGE_TEXTURES")
+        finally:
+            for slot, material in reversed(undo):
+                slot.material = material
     pixels = np.empty(w * h * 4, np.float32)
     image.pixels.foreach_get(pixels)
     return pixels.reshape(h, w, 4)[::-1, :, :3]  # image rows from the bottom, atlas rows from the top
+
+
+@contextlib.contextmanager
+def _bake_target(scene, obj):
+    """What Cycles bakes for `obj`: the object itself when it renders its mesh data; otherwise (a modifier stack, the
+    SG Lightmap UV modifier, text, curves) a temporary mesh object holding its evaluated surface, which Blender's bake
+    can take (it bakes mesh objects only and looks the UV layer up on the mesh data)."""
+    if obj.type == "MESH" and not obj.modifiers:
+        yield obj
+        return
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    mesh = bpy.data.meshes.new_from_object(obj.evaluated_get(depsgraph), preserve_all_data_layers=True,
+                                           depsgraph=depsgraph)
+    target = bpy.data.objects.new(f"{obj.name} (SG probe)", mesh)
+    target.matrix_world = obj.matrix_world
+    for index, slot in enumerate(obj.material_slots):
+        if index < len(target.material_slots):
+            target.material_slots[index].material = slot.material
+    scene.collection.objects.link(target)
+    try:
+        yield target
+    finally:
+        bpy.data.objects.remove(target)
+        bpy.data.meshes.remove(mesh)
 
 
 class _CyclesBakeSettings:

@@ -215,8 +215,10 @@ def stage_summary(stage: str, result, plan) -> tuple[str, list]:
     if stage == "train":
         metrics = result.metrics if hasattr(result, "metrics") else (result or {}).get("metrics", {})
         lf = metrics.get("lightfield", {})
-        return (f"{plan.max_sg_count} SGs; light field loss {lf.get('loss', float('nan')):.4f}, "
-                f"RMSE {lf.get('rmse', float('nan')):.4f}"
+        if "loss" not in lf:
+            return ("no light-field SGs to train: no glossy material is baked (irradiance lightmaps only)"
+                    if not plan.sg_objects else "the light field was not trained"), []
+        return (f"{plan.max_sg_count} SGs; light field loss {lf['loss']:.4f}, RMSE {lf['rmse']:.4f}"
                 + (f", midpoint RMSE {lf['midpoint']['rmse']:.4f}" if "midpoint" in lf else "")
                 + _shaded_error_summary(lf)), []
     if stage == "evaluate":

@@ -33,6 +33,9 @@ writes them to bench_out/bench.json.
             without it (ray tracing, baked volume and sphere probes) against the Cycles reference, overall and per
             material; and the same scene with every texture replaced by its mean over the surface (measured by
             Cycles). Targets: EEVEE without the bake / with it >= 2; textured / mean-textured bake FLIP <= 1.2.
+  geometry  demo:geometry (a smooth monkey, a live Bevel + Array + Subdivision stack, extruded text, a bevelled
+            curve) at Draft: per object its geometry, texels, capture seconds and the FLIP of EEVEE with and without
+            the bake, per material.
   stability the numerical-stability sweep: `spheres` at roughness 0 and 1, a 1e5 emitter, no light, scale 1e4 and
             1e-3, each baked and evaluated: every output finite, and the errors.
   hair      the hair filter (headless/bench_hair.py): onnxruntime time at 1024^2, PSNR/FLIP against Cycles
@@ -53,8 +56,8 @@ from shaders.bake_plan import (  # noqa: E402
     LOBE_REFIT_STEPS, PRESETS, BakeInputError, BakeSettings, write_json_atomic)
 
 CAPTURE_TARGET_S = 10.0
-SECTIONS = ("capture", "render", "train", "sgcount", "encoders", "knobs", "apply", "presets", "materials", "stability",
-            "hair")
+SECTIONS = ("capture", "render", "train", "sgcount", "encoders", "knobs", "apply", "presets", "materials", "geometry",
+            "stability", "hair")
 
 
 def bench_capture(scenes, presets, out_root: Path) -> list[dict]:
@@ -539,6 +542,43 @@ def bench_materials(out_root: Path, presets=("draft", "preview")) -> list[dict]:
     return rows
 
 
+def bench_geometry(out_root: Path, preset="draft") -> list[dict]:
+    """demo:geometry (a smooth monkey, a Bevel + Array + Subdivision stack, extruded text, a bevelled curve) at one
+    preset: per object its geometry, texels and the bake's FLIP in EEVEE with and without it, per material."""
+    import json
+
+    from blender_addon.demo_scenes import build_demo_scene
+    from blender_addon.pipeline import BakeJob
+
+    scene = build_demo_scene("geometry")
+    out = out_root / f"geometry_{preset}"
+    job = BakeJob(scene, BakeSettings.from_preset(preset), out)
+    job.run()
+    errors = json.loads((out / "report.json").read_text())["errors"]
+    eevee, alone = errors.get("eevee") or {}, errors.get("eevee_without_bake") or {}
+    texels = {o["name"]: o["texels"] for o in job.results["capture"].objects}
+    rows = []
+    for plan in job.plan.objects:
+        material = plan.materials[0].name if plan.materials else None
+        rows.append({"scene": "geometry", "preset": preset, "object": plan.name, "geometry": plan.geometry,
+                     "baked": plan.bake_lightfield, "texels": texels.get(plan.name, 0),
+                     "capture_s": round(job.timings["capture"], 2),
+                     "eevee_flip": _rounded((eevee.get("flip_by_material") or {}).get(material, {}).get("flip")),
+                     "eevee_without_bake_flip": _rounded(
+                         (alone.get("flip_by_material") or {}).get(material, {}).get("flip"))})
+        row = rows[-1]
+        print(f"geometry {preset:<8} {plan.name:<8} {plan.geometry:<36} texels {row['texels']:5d}; EEVEE FLIP with the "
+              f"bake {row['eevee_flip']}, without {row['eevee_without_bake_flip']}")
+    rows.append({"scene": "geometry", "preset": preset, "object": "(all)", "capture_s": round(job.timings["capture"], 2),
+                 "bake_s": round(sum(v for k, v in job.timings.items() if k != "evaluate"), 1),
+                 "flip": _rounded(errors.get("flip")), "eevee_flip": _rounded(eevee.get("flip")),
+                 "eevee_without_bake_flip": _rounded(alone.get("flip"))})
+    print(f"geometry {preset}: capture {rows[-1]['capture_s']} s, bake {rows[-1]['bake_s']} s; FLIP Cycles "
+          f"{rows[-1]['flip']}, EEVEE with the bake {rows[-1]['eevee_flip']}, without {rows[-1]['eevee_without_bake_flip']}")
+    _discard_scene(scene)
+    return rows
+
+
 def _discard_scene(scene):
     """Remove a demo scene, its bake and every data-block only it used, so the next demo built in this process gets
     its own names: its plan and report say "Floor", not "Floor.002"."""
@@ -998,6 +1038,8 @@ def main(argv=None) -> int:
         results["presets"] = bench_presets(ns.out, preset_scenes, preset_names, earlier.get("presets", ()), ns.device)
     if "materials" in sections:
         results["materials"] = bench_materials(ns.out, ("draft",) if ns.quick else ("draft", "preview"))
+    if "geometry" in sections:
+        results["geometry"] = bench_geometry(ns.out)
     if "stability" in sections:
         results["stability"] = bench_stability(ns.out)
     if "hair" in sections:

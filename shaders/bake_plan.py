@@ -186,6 +186,7 @@ class ObjectPlan:
     bake_lightfield: bool
     materials: list[MaterialPlan] = field(default_factory=list)
     reason: str = ""
+    geometry: str = "mesh"  # what its evaluated surface is: "mesh", "mesh + Bevel, Array", "text", "curve", ...
 
 
 @dataclass
@@ -274,8 +275,8 @@ class BakePlan:
 
     def decisions(self) -> list[str]:
         """What the bake models and why, one line each: what the CLI prints, the panel and the report show."""
-        lines = [f"{o.name}: {'bake' if o.bake_lightfield else 'skip'} ({o.reason}; {o.texels} texels)"
-                 for o in self.objects]
+        lines = [f"{o.name}: {'bake' if o.bake_lightfield else 'skip'} ({o.reason}; {o.texels} texels"
+                 + ("" if o.geometry == "mesh" else f"; {o.geometry}") + ")" for o in self.objects]
         glossy = {m.name: f"up to {m.sg_count} (per texel, its textured roughness)"
                   if "Roughness" in m.textured and not self.settings.uniform_sg_count else m.sg_count
                   for o in self.baked_objects for m in o.materials if m.glossy}

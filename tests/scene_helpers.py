@@ -78,3 +78,22 @@ def mesh_fingerprint(mesh) -> str:
         h.update(layer.name.encode() + bytes([layer.active, layer.active_render]) + uv.tobytes())
     h.update(str(sorted(mesh.keys())).encode())
     return h.hexdigest()
+
+
+def object_fingerprint(obj) -> str:
+    """Hash of what a user owns in an object: its modifiers (type, order and every setting), custom properties,
+    material slots and its data (mesh_fingerprint for meshes; curve and text settings otherwise)."""
+    h = hashlib.sha256()
+    for modifier in obj.modifiers:
+        settings = {p.identifier: getattr(modifier, p.identifier) for p in modifier.bl_rna.properties
+                    if not p.is_readonly and p.type in {"BOOLEAN", "INT", "FLOAT", "STRING", "ENUM"}}
+        h.update(repr((modifier.name, modifier.type, sorted((k, repr(v)) for k, v in settings.items()))).encode())
+    h.update(str(sorted(obj.keys())).encode())
+    h.update(repr([(s.link, s.material.name if s.material else None) for s in obj.material_slots]).encode())
+    if obj.type == "MESH":
+        h.update(mesh_fingerprint(obj.data).encode())
+    elif obj.data is not None:
+        h.update(repr(sorted((p.identifier, repr(getattr(obj.data, p.identifier))) for p in obj.data.bl_rna.properties
+                             if not p.is_readonly and p.type in {"BOOLEAN", "INT", "FLOAT", "STRING", "ENUM"})).encode())
+        h.update(str(sorted(obj.data.keys())).encode())
+    return h.hexdigest()

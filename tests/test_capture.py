@@ -17,7 +17,8 @@ from shaders.bake_plan import BakeInputError, BakeSettings
 from shaders.bake_report import read_report
 from shaders.texel_maps import (CAPTURE_PICTURES, FLAG_BURIED, FLAG_PUSHED_OUT, channels, read_texel_maps)
 from shaders.texel_raster import centre_overlap_count
-from tests.scene_helpers import base_name, cube, material, mesh_fingerprint, mesh_object, scene_with, uv_sphere
+from tests.scene_helpers import (base_name, cube, material, mesh_fingerprint, mesh_object, object_fingerprint, scene_with,
+                                 uv_sphere)
 
 REPO = Path(__file__).resolve().parent.parent
 DRAFT = BakeSettings.from_preset("draft")
@@ -187,21 +188,38 @@ def test_ngons_zero_area_faces_loose_vertices_and_no_uvs(tmp_path):
     assert len(obj.data.uv_layers) == 0
 
 
-def test_modifiers_are_applied_and_overlapping_results_are_refused(tmp_path):
+def test_modifiers_stay_live_and_a_user_layer_that_overlaps_after_them_is_refused(tmp_path):
+    """Geometry is captured as rendered (subdivision at its render levels); a Mirror gets texels for both halves
+    from the SG Lightmap UV modifier, whose removal leaves the object as it was; a user-chosen UV layer that the
+    Mirror copies onto both halves is refused, naming the modifier."""
     smooth = mesh_object("Subdivided", cube(2.0), material("glossy", 0.2))
     subsurf = smooth.modifiers.new("Subdivision", "SUBSURF")
-    subsurf.levels = subsurf.render_levels = 3
+    subsurf.levels, subsurf.render_levels = 0, 3  # the viewport shows the cube, a render the rounded shape
     _capture(scene_with(smooth), tmp_path / "subsurf")
+    assert subsurf.levels == 0  # put back after the capture
     atlas, _ = read_texel_maps(tmp_path / "subsurf")
     p = channels(atlas, "P.X", 3)[channels(atlas, "valid") > 0]
     # A subdivided cube is rounded: no texel reaches the base cube's corners (|p| = sqrt 3 there).
     assert np.linalg.norm(p, axis=1).max() < 0.9 * np.sqrt(3) and np.abs(p).max() > 0.6
-    mirrored = mesh_object("Mirrored Half", cube(1.0), material("glossy", 0.2))
+    mirrored = mesh_object("Mirrored Half", cube(1.0), material("glossy", 0.2), uv_map="UVMap")
     mirrored.location = (2, 0, 0)
-    mirror = mirrored.modifiers.new("Mirror", "MIRROR")
-    mirror.mirror_object = None
-    with pytest.raises(BakeInputError, match="'Mirrored Half': its lightmap UVs overlap after modifiers.*Mirror"):
-        _capture(scene_with(mirrored), tmp_path / "mirror")
+    mirrored.data.vertices.foreach_set("co", [c + (0.6 if k % 3 == 0 else 0.0) for k, c in enumerate(
+        [c for v in mirrored.data.vertices for c in v.co])])  # the half sits at x in 0.1..1.1 of the object
+    mirrored.modifiers.new("Mirror", "MIRROR")
+    before = object_fingerprint(mirrored)
+    scene = scene_with(mirrored)
+    _capture(scene, tmp_path / "mirror")
+    atlas, info = read_texel_maps(tmp_path / "mirror")
+    mine = _object_texels(atlas, info, "Mirrored Half")
+    x = channels(atlas, "P.X")[mine]
+    left, right = np.count_nonzero(x < 2.0), np.count_nonzero(x > 2.0)
+    assert left > 0 and abs(left - right) <= 0.1 * (left + right)  # both halves, about equally many texels
+    assert [m.name for m in mirrored.modifiers] == ["Mirror", "SG Lightmap UV"]
+    remove_lightmap_uvs(scene)
+    assert object_fingerprint(mirrored) == before
+    with pytest.raises(BakeInputError, match="'Mirrored Half': its UV layer 'UVMap' overlaps itself after its "
+                                             "modifiers \\(Mirror\\)"):
+        _capture(scene, tmp_path / "user layer", lightmap_uv_layer="UVMap")
 
 
 def test_texel_scale_multiplier_per_object(tmp_path):

@@ -73,7 +73,7 @@ def test_stage_hashes_follow_what_outputs_depend_on_not_the_plans_wording():
 
 
 def test_empty_scene_is_one_clear_error():
-    with pytest.raises(BakeInputError, match="no mesh objects .*empty"):
+    with pytest.raises(BakeInputError, match="no mesh, curve or text objects .*empty"):
         build_plan(_scene_with(), DRAFT)
 
 
@@ -97,7 +97,7 @@ def test_no_glossy_material_and_no_material():
     assert plan.sg_objects == [] and plan.max_sg_count == 0
     assert list(map(base_name, plan.irradiance_only_materials)) == ["rough"]
     assert "no light-field SGs" in plan.summary() and "irradiance lightmap only" in "\n".join(plan.decisions())
-    with pytest.raises(BakeInputError, match="no mesh has a glossy material"):
+    with pytest.raises(BakeInputError, match="no object has a glossy material"):
         build_plan(scene, BakeSettings.from_preset("draft", rough_materials="renderer"))
 
 
@@ -255,7 +255,7 @@ def test_cli_empty_blend_is_one_line_and_nonzero(tmp_path):
     subprocess.run([sys.executable, "-c", code], check=True, capture_output=True)
     out = _bake("--blend", str(empty), "--out", str(tmp_path / "o"))
     assert out.returncode == 1
-    assert out.stderr.strip().splitlines() == ["error: nothing to bake: the scene has no mesh objects (it is empty)"]
+    assert out.stderr.strip().splitlines() == ["error: nothing to bake: the scene has no mesh, curve or text objects (it is empty)"]
 
 
 def test_cli_eta_counts_only_the_current_stage_progress(monkeypatch, capsys):

@@ -1,0 +1,287 @@
+"""Real geometry (bpy as a module): modifier stacks stay live, text and curves bake as their evaluated meshes, small
+objects get texels of their own, and what is not baked (instances, metaballs, NURBS surfaces) is named with a reason."""
+import json
+import math
+
+import bpy  # noqa: I001  (bmesh exists only once bpy is imported)
+import bmesh
+import numpy as np
+import pytest
+
+from blender_addon import lightmap_modifier
+from blender_addon.apply import remove_bake
+from blender_addon.capture import LIGHTMAP_LAYER, capture, remove_lightmap_uvs
+from blender_addon.scene_analysis import active_scene, build_plan, loop_triangle_arrays
+from headless.bake import stage_summary
+from shaders.bake_plan import BakeInputError, BakeSettings
+from shaders.texel_maps import channels, read_texel_maps
+from tests.scene_helpers import base_name, cube, material, mesh_object, object_fingerprint, scene_with, uv_sphere
+
+DRAFT = BakeSettings.from_preset("draft")
+
+
+def _texels_of(atlas, info, name):
+    object_id = next(o["id"] for o in info["objects"] if base_name(o["name"]) == name)
+    return (channels(atlas, "object_id") == object_id) & (channels(atlas, "valid") > 0)
+
+
+def _evaluated_uv(obj):
+    with active_scene(obj.users_scene[0]) as depsgraph:
+        depsgraph.update()
+        evaluated = obj.evaluated_get(depsgraph)
+        mesh = evaluated.to_mesh()
+        try:
+            loops, _, _, coords = loop_triangle_arrays(mesh)
+            uv = np.empty(len(mesh.loops) * 2, np.float32)
+            mesh.uv_layers[LIGHTMAP_LAYER].uv.foreach_get("vector", uv)
+            corner_vertex = np.empty(len(mesh.loops), np.int64)
+            mesh.loops.foreach_get("vertex_index", corner_vertex)
+            return uv.reshape(-1, 2)[loops], coords[corner_vertex[loops]]
+        finally:
+            evaluated.to_mesh_clear()
+
+
+def _own_texels_overlap(uv_triangles, width, height):
+    from shaders.texel_raster import centre_overlap_count
+
+    px = np.stack([uv_triangles[..., 0] * width, (1 - uv_triangles[..., 1]) * height], axis=-1)
+    claimed = centre_overlap_count(px, width, height)
+    return np.count_nonzero(claimed > 1), np.count_nonzero(claimed)
+
+
+def test_a_small_smooth_monkey_at_low_density_gets_texels_of_its_own(tmp_path):
+    """Suzanne (no modifiers) at Draft's 4 texels/m: xatlas splits some of her quads across charts, which one UV per
+    corner of her mesh cannot hold; the SG Lightmap UV modifier gives her triangulated surface the layout, every
+    chart keeps its own texels and her mesh data is not touched."""
+    def monkey(bm):
+        bmesh.ops.create_monkey(bm)
+    suzanne = mesh_object("Suzanne", monkey, material("red plastic", 0.25))
+    for polygon in suzanne.data.polygons:
+        polygon.use_smooth = True
+    suzanne.scale = (0.4, 0.4, 0.4)
+    scene = scene_with(suzanne)
+    before = object_fingerprint(suzanne)
+    ours = {kind: {b.name for b in getattr(bpy.data, kind) if b.get(lightmap_modifier.OWNED_KEY)}
+            for kind in ("objects", "meshes", "node_groups")}  # other tests' scenes may still hold theirs
+    plan = build_plan(scene, DRAFT)
+    result = capture(scene, plan, tmp_path)
+    assert not result.warnings, result.warnings
+    tile = next(o for o in result.objects if base_name(o["name"]) == "Suzanne")
+    assert tile["texels"] > 0
+    assert LIGHTMAP_LAYER not in suzanne.data.uv_layers  # the layout lives on the evaluated geometry only
+    uv, _ = _evaluated_uv(suzanne)
+    shared, covered = _own_texels_overlap(uv, tile["pixel_rect"][2], tile["pixel_rect"][3])
+    assert covered > 0 and shared / covered <= 0.002, (shared, covered)
+    remove_lightmap_uvs(scene)
+    assert object_fingerprint(suzanne) == before
+    assert {kind: {b.name for b in getattr(bpy.data, kind) if b.get(lightmap_modifier.OWNED_KEY)}
+            for kind in ours} == ours
+
+
+def test_the_layout_follows_a_live_modifier_stack_and_a_textured_material_is_measured_on_it(tmp_path):
+    """A bar with Bevel + Array + Subdivision (viewport level 1, render level 2) and a Noise-textured roughness: each
+    array copy gets texels; the evaluated UV equals the carrier's layout at render levels and, at the viewport's
+    other topology, stays within a texel of it (the modifier's nearest-surface fallback); the probe bakes the textured
+    roughness through a temporary mesh of the evaluated surface; Remove leaves the object as it was."""
+    steel = material("steel", 0.3, metallic=1.0)
+    tree = steel.node_tree
+    noise = tree.nodes.new("ShaderNodeTexNoise")
+    ramp = tree.nodes.new("ShaderNodeMapRange")
+    ramp.inputs["To Min"].default_value, ramp.inputs["To Max"].default_value = 0.1, 0.4
+    tree.links.new(noise.outputs["Fac"], ramp.inputs["Value"])
+    tree.links.new(ramp.outputs["Result"], tree.nodes["Principled BSDF"].inputs["Roughness"])
+    bar = mesh_object("Bar", cube(0.5), steel)
+    bevel = bar.modifiers.new("Bevel", "BEVEL")
+    bevel.width, bevel.segments = 0.05, 2
+    array = bar.modifiers.new("Array", "ARRAY")
+    array.count, array.relative_offset_displace = 4, (1.5, 0.0, 0.0)
+    subdivision = bar.modifiers.new("Subdivision", "SUBSURF")
+    subdivision.levels, subdivision.render_levels = 1, 2
+    scene = scene_with(bar)
+    before = object_fingerprint(bar)
+    plan = build_plan(scene, BakeSettings.from_preset("draft", texel_density=16.0))
+    bar_plan = next(o for o in plan.objects if base_name(o.name) == "Bar")
+    assert bar_plan.bake_lightfield and bar_plan.geometry == "mesh + Bevel, Array, Subdivision"
+    result = capture(scene, plan, tmp_path)
+    assert subdivision.levels == 1
+    atlas, info = read_texel_maps(tmp_path)
+    mine = _texels_of(atlas, info, "Bar")
+    x = channels(atlas, "P.X")[mine]
+    copies = np.bincount(np.clip(np.round(x / 0.75).astype(int), 0, 3), minlength=4)  # array copies 0.75 m apart
+    assert np.all(copies > 0.15 * copies.sum()), copies
+    roughness = channels(atlas, "roughness")[mine]
+    assert 0.09 <= roughness.min() and roughness.max() <= 0.41 and roughness.std() > 0.01
+    measured = next(m for m in info["materials"] if base_name(m["name"]) == "steel")["measured"]
+    assert measured["texels"] == int(mine.sum())
+    assert result.surface_probe["objects"] == [bar.name]
+
+    subdivision.levels = 2  # the render topology: UVs by corner index, exactly the carrier's
+    carrier = lightmap_modifier.carrier_of(bar).data
+    exact = np.empty(len(carrier.loops) * 2, np.float32)
+    carrier.uv_layers[LIGHTMAP_LAYER].uv.foreach_get("vector", exact)
+    uv, _ = _evaluated_uv(bar)
+    loops, _, _, _ = loop_triangle_arrays(carrier)
+    np.testing.assert_allclose(uv, exact.reshape(-1, 2)[loops], atol=1e-6)
+    subdivision.levels = 1  # the viewport's coarser topology: every triangle's UV lies on the layout
+    coarse_uv, _ = _evaluated_uv(bar)
+    width, height = next(o for o in result.objects if base_name(o["name"]) == "Bar")["pixel_rect"][2:]
+    texel = 1.0 / min(width, height)
+    charts = exact.reshape(-1, 2)[loops]
+    from scipy.spatial import cKDTree
+
+    distance, _ = cKDTree(charts.reshape(-1, 2)).query(coarse_uv.reshape(-1, 2))
+    assert np.median(distance) < texel, (np.median(distance), texel)
+    remove_lightmap_uvs(scene)
+    assert object_fingerprint(bar) == before
+
+
+def _unsupported_and_instanced_scene():
+    """A floor, spheres instanced by Geometry Nodes on a grid, a collection instance, a metaball, a NURBS surface and
+    a curve with no bevel."""
+    chrome = material("chrome", 0.1, metallic=1.0)
+    floor = mesh_object("Floor", cube(4.0), material("tiles", 0.3))
+    floor.scale.z = 0.01
+    sphere = mesh_object("Sphere Source", uv_sphere(0.3), chrome)
+    sphere.hide_render = True
+    grid = mesh_object("Grid", cube(0.1))
+    tree = bpy.data.node_groups.new("Scatter spheres", "GeometryNodeTree")
+    tree.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    tree.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    points = tree.nodes.new("GeometryNodeMeshGrid")
+    points.inputs["Vertices X"].default_value, points.inputs["Vertices Y"].default_value = 3, 2
+    info = tree.nodes.new("GeometryNodeObjectInfo")
+    info.inputs["Object"].default_value, info.inputs["As Instance"].default_value = sphere, True
+    instance = tree.nodes.new("GeometryNodeInstanceOnPoints")
+    tree.links.new(points.outputs["Mesh"], instance.inputs["Points"])
+    tree.links.new(info.outputs["Geometry"], instance.inputs["Instance"])
+    tree.links.new(instance.outputs["Instances"], tree.nodes.new("NodeGroupOutput").inputs[0])
+    grid.modifiers.new("Scatter", "NODES").node_group = tree
+    rocks = bpy.data.collections.new("Rocks")
+    rocks.objects.link(mesh_object("Rock", cube(0.3), chrome))
+    empty = bpy.data.objects.new("Rock Instance", None)
+    empty.instance_type, empty.instance_collection = "COLLECTION", rocks
+    blob = bpy.data.objects.new("Blob", bpy.data.metaballs.new("Blob"))
+    blob.data.elements.new()
+    blob.data.materials.append(chrome)
+    wire = bpy.data.objects.new("Wire", bpy.data.curves.new("Wire", "CURVE"))
+    wire.data.splines.new("POLY").points.add(2)
+    wire.data.materials.append(chrome)
+    scene = scene_with(floor, sphere, grid, empty, blob, wire, name="instances test")
+    with bpy.context.temp_override(scene=scene, view_layer=scene.view_layers[0], collection=scene.collection):
+        bpy.ops.surface.primitive_nurbs_surface_sphere_add(radius=0.4, location=(1.5, 1.5, 0.5))
+    return scene
+
+
+def test_instances_metaballs_surfaces_and_bare_curves_are_named_with_their_reasons():
+    scene = _unsupported_and_instanced_scene()
+    plan = build_plan(scene, DRAFT)
+    by_name = {base_name(o.name): o for o in plan.objects}
+    assert by_name["Floor"].bake_lightfield and by_name["Floor"].texels > 0
+    grid = by_name["Grid"]
+    assert not grid.bake_lightfield and "6 geometry nodes instances of Sphere Source" in grid.reason
+    assert "left to the renderer" in grid.reason
+    rocks = by_name["Rock Instance"]
+    assert "1 collection instance of Rock" in rocks.reason and rocks.geometry == "1 collection instance of Rock"
+    assert "cannot give a metaball the lightmap UV modifier" in by_name["Blob"].reason
+    assert "no surface: a curve without bevel" in by_name["Wire"].reason
+    nurbs = next(o for o in plan.objects if scene.objects[o.name].type == "SURFACE")
+    assert "NURBS surface" in nurbs.reason
+    assert any("instances of glossy objects are not baked" in w and "Sphere Source" in w for w in plan.warnings)
+    decisions = "\n".join(plan.decisions())
+    for name in ("Grid", "Rock Instance", "Blob", "Wire"):
+        assert f"\n{name}" in "\n" + decisions or decisions.startswith(name)
+    floor_only = BakeSettings.from_preset("draft", rough_materials="renderer")
+    next(o for o in scene.objects if base_name(o.name) == "Floor").material_slots[0].material = material("matte", 0.9)
+    with pytest.raises(BakeInputError, match="instances of glossy objects are not baked.*Sphere Source"):
+        build_plan(scene, floor_only)
+
+
+def test_a_bake_without_glossy_materials_says_so_instead_of_a_loss():
+    plan = build_plan(scene_with(mesh_object("Rough", cube(1.0), material("rough", 0.9))), DRAFT)
+    line, _ = stage_summary("train", {"metrics": {}}, plan)
+    assert "no glossy material" in line and "nan" not in line.lower()
+
+
+@pytest.mark.slow
+def test_the_geometry_demo_bakes_every_class_and_remove_restores_every_object(tmp_path):
+    """demo:geometry end to end at small settings: the monkey, the modifier stack, the text and the curve are each in
+    the plan with texels, the bake finishes, EEVEE's FLIP per material is finite and in the report, and Remove SG
+    Bake leaves every object (modifiers, mesh, UV layers, slots) and the file's datablocks as they were."""
+    from blender_addon.demo_scenes import build_demo_scene
+    from blender_addon.evaluate import evaluate_stage
+    from blender_addon.pipeline import BakeJob
+
+    scene = build_demo_scene("geometry")
+    before = {o.name: object_fingerprint(o) for o in scene.objects}
+    datablocks = {kind: set(getattr(bpy.data, kind).keys()) for kind in ("objects", "meshes", "node_groups")}
+    settings = BakeSettings.from_preset("draft", lightfield_resolution=8, samples=8, sg_count=4, training_budget_s=4.0,
+                                        lobe_refit_steps=20)
+    job = BakeJob(scene, settings, tmp_path, stages=("capture", "render", "train", "apply"))
+    by_name = {base_name(o.name): o for o in job.plan.objects}
+    expected = {"Suzanne": "mesh", "Bar": "mesh + Bevel, Array, Subdivision", "Text": "text", "Pipe": "curve"}
+    for name, geometry in expected.items():
+        assert by_name[name].bake_lightfield and by_name[name].texels > 0 and by_name[name].geometry == geometry
+    job.run()
+    tiles = {base_name(o["name"]): o["texels"] for o in job.results["capture"].objects}
+    assert all(tiles[name] > 0 for name in expected), tiles
+    errors = evaluate_stage(scene, job.plan, tmp_path, views=1, resolution=(96, 54), reference_samples=16)
+    eevee = errors["eevee"]
+    assert "error" not in eevee and math.isfinite(errors["flip"]) and 0 < eevee["flip"] < 1
+    flips = {base_name(k): v["flip"] for k, v in eevee["flip_by_material"].items()}
+    for name in ("Red Plastic", "Steel", "Gold", "Copper"):
+        assert math.isfinite(flips[name]) and 0 <= flips[name] < 1, flips
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["errors"]["eevee"]["flip"] == eevee["flip"]
+    remove_bake(scene)
+    assert {o.name: object_fingerprint(o) for o in scene.objects} == before
+    assert {kind: set(getattr(bpy.data, kind).keys()) for kind in datablocks} == datablocks
+
+
+def _solidify(obj):
+    obj.modifiers.new("Solidify", "SOLIDIFY").thickness = 0.2
+
+
+def _boolean(obj):
+    cutter = mesh_object("Cutter", uv_sphere(0.6))
+    cutter.location = (0.5, 0.5, 0.5)
+    cutter.hide_render = cutter.hide_viewport = True
+    obj.users_scene[0].collection.objects.link(cutter)
+    boolean = obj.modifiers.new("Boolean", "BOOLEAN")
+    boolean.operation, boolean.object = "DIFFERENCE", cutter
+
+
+def _geometry_nodes(obj):
+    tree = bpy.data.node_groups.new("Subdivide and twist", "GeometryNodeTree")
+    tree.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    tree.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    subdivide = tree.nodes.new("GeometryNodeSubdivideMesh")
+    subdivide.inputs["Level"].default_value = 2
+    tree.links.new(tree.nodes.new("NodeGroupInput").outputs[0], subdivide.inputs["Mesh"])
+    offset = tree.nodes.new("GeometryNodeSetPosition")
+    noise = tree.nodes.new("ShaderNodeTexNoise")
+    scale = tree.nodes.new("ShaderNodeVectorMath")
+    scale.operation, scale.inputs["Scale"].default_value = "SCALE", 0.1
+    tree.links.new(noise.outputs["Color"], scale.inputs[0])
+    tree.links.new(scale.outputs["Vector"], offset.inputs["Offset"])
+    tree.links.new(subdivide.outputs[0], offset.inputs["Geometry"])
+    tree.links.new(offset.outputs[0], tree.nodes.new("NodeGroupOutput").inputs[0])
+    obj.modifiers.new("Twist", "NODES").node_group = tree
+
+
+@pytest.mark.parametrize("stack", [_solidify, _boolean, _geometry_nodes], ids=["solidify", "boolean", "geometry nodes"])
+def test_solidify_boolean_and_geometry_nodes_stacks_get_a_layout_of_their_own(tmp_path, stack):
+    box = mesh_object("Box", cube(1.0), material("glossy", 0.2))
+    scene = scene_with(box)
+    stack(box)
+    before = object_fingerprint(box)
+    plan = build_plan(scene, BakeSettings.from_preset("draft", texel_density=16.0))
+    result = capture(scene, plan, tmp_path)
+    assert not result.warnings, result.warnings
+    tile = next(o for o in result.objects if base_name(o["name"]) == "Box")
+    area = next(o.area_m2 for o in plan.objects if base_name(o.name) == "Box")
+    assert 0.5 * area * 16.0**2 <= tile["texels"] <= 3.0 * area * 16.0**2, (tile["texels"], area)
+    uv, _ = _evaluated_uv(box)
+    shared, covered = _own_texels_overlap(uv, tile["pixel_rect"][2], tile["pixel_rect"][3])
+    assert shared / covered <= 0.002, (shared, covered)
+    remove_lightmap_uvs(scene)
+    assert object_fingerprint(box) == before
