@@ -33,10 +33,12 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.sg_textures import (is_sh_texture, pack_tiles, read_sg_texture, read_sh_texture, scatter_dilated,
                                    sg_texture_path)
     from ..shaders.texel_maps import channels, read_texel_maps, smooth_over_texels, texels_of_objects
+    from . import lightmap_modifier
     from .capture import LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, remove_lightmap_uvs
     from .surface_shaders import (COPY_KEY, COPY_SUFFIX, LeafInputs, copy_material, remove_unused_group_copies,
                                   rewrite_surface)
 except ImportError:  # bpy as a module with the repository on sys.path
+    from blender_addon import lightmap_modifier
     from blender_addon.capture import LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, remove_lightmap_uvs
     from blender_addon.surface_shaders import (COPY_KEY, COPY_SUFFIX, LeafInputs, copy_material,
                                                remove_unused_group_copies, rewrite_surface)
@@ -163,13 +165,14 @@ def _load_image(path: Path, pack: bool):
 
 
 def _lightmap_uv(tree):
-    """Nodes in `tree` giving the atlas UV of the shaded point: the lightmap layer placed in the object's tile."""
+    """Nodes in `tree` giving the atlas UV of the shaded point: the lightmap layer placed in the tile of the object
+    or instance (Instancer attributes: an instance's own tile, else the object's)."""
     uv = tree.nodes.new("ShaderNodeUVMap")
     uv.uv_map = LIGHTMAP_LAYER
     offset = tree.nodes.new("ShaderNodeAttribute")
-    offset.attribute_type, offset.attribute_name = "OBJECT", OFFSET_KEY
+    offset.attribute_type, offset.attribute_name = "INSTANCER", OFFSET_KEY
     scale = tree.nodes.new("ShaderNodeAttribute")
-    scale.attribute_type, scale.attribute_name = "OBJECT", SCALE_KEY
+    scale.attribute_type, scale.attribute_name = "INSTANCER", SCALE_KEY
     atlas_uv = tree.nodes.new("ShaderNodeVectorMath")
     atlas_uv.operation = "MULTIPLY_ADD"
     tree.links.new(uv.outputs["UV"], atlas_uv.inputs[0])
@@ -258,7 +261,8 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
     """Write the bake into the scene's materials. Returns what was done (also merged into report.json)."""
     start = time.perf_counter()
     out_dir = Path(out_dir)
-    missing = [o.name for o in plan.baked_objects if scene.objects.get(o.name) is None]
+    missing = [o.name for o in plan.baked_objects if scene.objects.get(o.name if not o.instancer else o.instancer) is None
+               or (o.instancer and bpy.data.objects.get(o.source) is None)]
     if missing:
         raise BakeInputError(f"objects {missing} of the plan are not in scene '{scene.name}'; make a new plan")
     layout, path, measured, env_sgs = build_packed_image(out_dir, plan)
@@ -290,11 +294,15 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
         return groups[count]
 
     record = json.loads(scene.get(BAKE_RECORD_KEY, "{}"))
-    baked_materials = set()
+    baked_materials, switched = set(), set()
     for object_plan in plan.baked_objects:
-        obj = scene.objects[object_plan.name]
-        if OFFSET_KEY not in obj:
-            raise BakeInputError(f"'{obj.name}': not captured (no lightmap tile); run the capture stage first")
+        obj = bpy.data.objects[object_plan.source] if object_plan.instancer else scene.objects[object_plan.name]
+        holder = scene.objects[object_plan.instancer] if object_plan.instancer else obj  # where its tile is
+        if OFFSET_KEY not in holder and lightmap_modifier.instance_tiles_of(holder) is None:
+            raise BakeInputError(f"'{object_plan.name}': not captured (no lightmap tile); run the capture stage first")
+        if obj.name in switched:  # another instance of the same object: its slots are switched already
+            continue
+        switched.add(obj.name)
         baked_counts = {m.name: m.sg_count if m.glossy else 0 for m in object_plan.materials if m.baked}
         slots = record.setdefault(obj.name, {})
         for index, slot in enumerate(obj.material_slots):
@@ -353,8 +361,8 @@ def baked_slots(scene):
     """(material slot, original material) of every slot the scene's bake switched and that still exists."""
     record = json.loads(scene.get(BAKE_RECORD_KEY, "{}"))
     for object_name, slots in record.items():
-        obj = scene.objects.get(object_name)
-        for index, original_name in slots.items():
+        obj = scene.objects.get(object_name) or bpy.data.objects.get(object_name)  # an instanced object may be in
+        for index, original_name in slots.items():  # a collection no scene links
             original = bpy.data.materials.get(original_name)
             if obj is not None and original is not None and int(index) < len(obj.material_slots):
                 yield obj.material_slots[int(index)], original

@@ -6,7 +6,9 @@ What it changes in the scene (``remove_lightmap_uvs`` takes all of it away again
 - an object with modifiers, a text or a curve, or a mesh whose quads xatlas would split across charts, gets the
   same layer from a last, removable ``SG Lightmap UV`` modifier (lightmap_modifier), so its stack stays live;
 - every baked object gets its tile of the shared atlas as two custom properties (sglf_lightmap_offset and
-  sglf_lightmap_scale: atlas_uv = offset + uv * scale), so duplicates get texels of their own.
+  sglf_lightmap_scale: atlas_uv = offset + uv * scale), so duplicates get texels of their own;
+- every instance gets a tile of its own too: a collection instance on its empty's properties, a geometry-node
+  instance as instance attributes that the SG Lightmap UV modifier on its instancer writes.
 Geometry is captured as a render evaluates it (modifiers shown for rendering, subdivision at render levels).
 
 What it writes to the bake directory:
@@ -40,8 +42,8 @@ try:  # inside the installed extension the numpy side is a sibling package
                                       FLAG_GUTTER, FLAG_PUSHED_OUT, TEXEL_CHANNELS, TEXELS_FILE, TEXELS_JSON,
                                       save_capture_pictures)
     from ..shaders.texel_raster import centre_overlap_count, dilate, rasterize, shelf_pack, signed_areas
-    from .scene_analysis import (active_scene, loop_triangle_arrays, principled_surface, transform_points,
-                                 triangle_areas, unbaked)
+    from .scene_analysis import (active_scene, bake_targets, loop_triangle_arrays, principled_surface,
+                                 transform_points, triangle_areas, unbaked)
     from . import lightmap_modifier
     from .lightmap_modifier import user_modifiers
     from .surface_probe import measure_surfaces
@@ -49,7 +51,7 @@ except ImportError:  # bpy as a module with the repository on sys.path
     from blender_addon import lightmap_modifier
     from blender_addon.lightmap_modifier import user_modifiers
     from blender_addon.surface_probe import measure_surfaces
-    from blender_addon.scene_analysis import (active_scene, loop_triangle_arrays, principled_surface,
+    from blender_addon.scene_analysis import (active_scene, bake_targets, loop_triangle_arrays, principled_surface,
                                               transform_points, triangle_areas, unbaked)
     from shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
     from shaders.bake_report import update_report
@@ -168,11 +170,19 @@ def ensure_lightmap_layer(mesh, loop_uv) -> None:
     mesh.update()
 
 
+def lightmap_owners(scene) -> list:
+    """Every object a capture of `scene` may have changed: the scene's objects and the objects its instances show
+    (which may live in a collection no scene links)."""
+    with active_scene(scene) as depsgraph:
+        instanced = {i.object.original for i in depsgraph.object_instances if i.is_instance}
+    return list(dict.fromkeys([*scene.objects, *sorted(instanced, key=lambda o: o.name)]))
+
+
 def remove_lightmap_uvs(scene) -> int:
     """Undo capture's changes: drop the SGLightmap layers, SG Lightmap UV modifiers (with their carriers) and tile
     rectangles it added. Returns the count of layers and modifiers removed."""
     removed = 0
-    for obj in scene.objects:
+    for obj in lightmap_owners(scene):
         for key in TILE_KEYS:
             if key in obj:
                 del obj[key]
@@ -270,13 +280,12 @@ def _tile_sizes(uv_triangles, width, height, scales, name, warnings):
     return sizes
 
 
-def _densities(users, coords, verts, local_area, settings, matrices=None):
-    """Texels per object-space unit of each user (world area over local area, times the object's texel scale)."""
+def _densities(targets, coords, verts, local_area, settings):
+    """Texels per object-space unit of each target (world area over local area, times its object's texel scale)."""
     densities = []
-    for k, obj in enumerate(users):
-        matrix = obj.matrix_world if matrices is None else matrices[k]
-        world_area = float(triangle_areas(transform_points(matrix, coords), verts).sum())
-        densities.append(settings.texel_density * _texel_scale(obj) * math.sqrt(world_area / local_area))
+    for target in targets:
+        world_area = float(triangle_areas(transform_points(target.matrix, coords), verts).sum())
+        densities.append(settings.texel_density * _texel_scale(target.obj) * math.sqrt(world_area / local_area))
     return densities
 
 
@@ -286,46 +295,51 @@ def _check_size(name, local_area, reference, settings):
                              f"{settings.texel_density:g} texels/m; lower the texel density or its {TEXEL_SCALE_KEY}")
 
 
-def _plan_layout(objects, settings, lightmap_uv_layer, warnings):
-    """Lightmap UVs and one atlas tile per object; returns tiles. Plain meshes get the UV layer SGLightmap on their
-    mesh data (linked duplicates share it); everything else gets it from the SG Lightmap UV modifier."""
+def _plan_layout(targets, settings, lightmap_uv_layer, warnings):
+    """Lightmap UVs and one atlas tile per target (an object, or one instance of an object); returns tiles. Plain
+    meshes get the UV layer SGLightmap on their mesh data (linked duplicates and instances share it); everything else
+    gets it from the SG Lightmap UV modifier. Every instance of an object shares the object's layout."""
+    owners = list(dict.fromkeys(t.obj for t in targets))
+    uses = {obj: [t for t in targets if t.obj == obj] for obj in owners}
+    modified = [obj for obj in owners if _needs_modifier(obj, lightmap_uv_layer)]
     groups: dict = {}
-    modified = [obj for obj in objects if _needs_modifier(obj, lightmap_uv_layer)]
-    for obj in objects:
+    for obj in owners:
         if obj not in modified:
             groups.setdefault(obj.data.name, []).append(obj)
-    layouts = {}  # object name -> (layer, width, height, scale)
-    for mesh_name, users in groups.items():
-        mesh = users[0].data
+    layouts = {}  # target name -> (layer, (width, height))
+    for mesh_name, objects in groups.items():
+        mesh = objects[0].data
+        users = [t for obj in objects for t in uses[obj]]
         loops, verts, _, coords = loop_triangle_arrays(mesh)
         local_area = float(triangle_areas(coords, verts).sum())
         if local_area <= 0:
             raise BakeInputError(f"'{users[0].name}': mesh '{mesh_name}' has no faces with area")
         densities = _densities(users, coords, verts, local_area, settings)
         if lightmap_uv_layer:
-            for obj, d in zip(users, densities):
-                side = _validate_user_layer(obj, loops, lightmap_uv_layer, local_area * (d / settings.texel_density) ** 2,
-                                            settings.texel_density)
-                layouts[obj.name] = (lightmap_uv_layer, [(side, side)])
+            for target, d in zip(users, densities):
+                side = _validate_user_layer(target.obj, loops, lightmap_uv_layer,
+                                            local_area * (d / settings.texel_density) ** 2, settings.texel_density)
+                layouts[target.name] = (lightmap_uv_layer, (side, side))
             continue
         reference = max(densities)
         _check_size(users[0].name, local_area, reference, settings)
         loop_uv, (width, height), conflicts = _xatlas_layout(mesh, loops, verts, coords, reference)
         if conflicts:  # a quad or n-gon split across charts: only a triangulated copy can hold one UV per corner
-            modified.extend(users)
+            modified.extend(objects)
             continue
-        for obj in users:
+        for obj in objects:
             lightmap_modifier.detach(obj)  # an earlier bake's, now that the object renders its mesh data
         ensure_lightmap_layer(mesh, loop_uv)
         sizes = _tile_sizes(loop_uv[loops], width, height, [d / reference for d in densities], users[0].name, warnings)
-        for obj, size in zip(users, sizes):
-            layouts[obj.name] = (LIGHTMAP_LAYER, [size])
+        for target, size in zip(users, sizes):
+            layouts[target.name] = (LIGHTMAP_LAYER, size)
     if modified:
         for obj in modified:
             lightmap_modifier.attach(obj)
         depsgraph = bpy.context.evaluated_depsgraph_get()
         depsgraph.update()
         for obj in modified:
+            users = uses[obj]
             evaluated = obj.evaluated_get(depsgraph)
             mesh = evaluated.to_mesh()
             try:
@@ -333,25 +347,47 @@ def _plan_layout(objects, settings, lightmap_uv_layer, warnings):
                 local_area = float(triangle_areas(coords, verts).sum()) if len(verts) else 0.0
                 if local_area <= 0:
                     raise BakeInputError(f"'{obj.name}': its evaluated {obj.type.lower()} has no faces with area")
-                (density,) = _densities([obj], coords, verts, local_area, settings, [evaluated.matrix_world])
-                _check_size(obj.name, local_area, density, settings)
-                loop_uv, (width, height), _ = _xatlas_layout(mesh, loops, verts, coords, density)
+                densities = _densities(users, coords, verts, local_area, settings)
+                reference = max(densities)
+                _check_size(obj.name, local_area, reference, settings)
+                loop_uv, (width, height), _ = _xatlas_layout(mesh, loops, verts, coords, reference)
                 lightmap_modifier.set_carrier(obj, mesh, loop_uv)
             finally:
                 evaluated.to_mesh_clear()
-            layouts[obj.name] = (LIGHTMAP_LAYER, _tile_sizes(loop_uv[loops], width, height, [1.0], obj.name, warnings))
+            sizes = _tile_sizes(loop_uv[loops], width, height, [d / reference for d in densities], obj.name, warnings)
+            for target, size in zip(users, sizes):
+                layouts[target.name] = (LIGHTMAP_LAYER, size)
         lightmap_modifier.remove_orphans()
-    pending = [(obj, *layouts[obj.name]) for obj in objects]
-    sizes = [size[0] for _, _, size in pending]
+    sizes = [layouts[t.name][1] for t in targets]
     try:
         positions, atlas_w, atlas_h = shelf_pack(sizes, border=1, max_side=MAX_ATLAS_SIDE)
     except ValueError as exc:
         raise BakeInputError(f"the lightmap atlas is too large ({exc}); lower the texel density") from exc
     tiles = []
-    for i, ((obj, layer, _), (x, y), (w, h)) in enumerate(zip(pending, positions, sizes)):
+    for i, (target, (x, y), (w, h)) in enumerate(zip(targets, positions, sizes)):
         rect = (x / atlas_w, (atlas_h - y - h) / atlas_h, w / atlas_w, h / atlas_h)
-        tiles.append(ObjectTile(i + 1, obj.name, obj.data.name, layer, rect, (x, y, w, h)))
+        tiles.append(ObjectTile(i + 1, target.name, target.obj.data.name, layouts[target.name][0], rect, (x, y, w, h)))
     return tiles, atlas_w, atlas_h
+
+
+def _store_tiles(targets, tiles) -> None:
+    """Each target's atlas tile where its baked material finds it (an Instancer attribute): an object's own custom
+    properties; a collection instance's empty; a geometry-node instance's instance attributes, written by the SG
+    Lightmap UV modifier on its instancer."""
+    by_instancer: dict = {}
+    for target, tile in zip(targets, tiles):
+        u0, v0, su, sv = tile.rect
+        offset, scale = [u0, v0, 0.0], [su, sv, 1.0]
+        if target.instancer is None:
+            target.obj[OFFSET_KEY], target.obj[SCALE_KEY] = offset, scale
+        elif target.instancer.type == "EMPTY":
+            target.instancer[OFFSET_KEY], target.instancer[SCALE_KEY] = offset, scale
+        else:
+            local = target.instancer.matrix_world.inverted() @ target.matrix.translation
+            by_instancer.setdefault(target.instancer, []).append((tuple(local), offset, scale))
+    for instancer, rows in by_instancer.items():
+        lightmap_modifier.attach(instancer)
+        lightmap_modifier.set_instance_tiles(instancer, *zip(*rows))
 
 
 @contextlib.contextmanager
@@ -470,7 +506,8 @@ def ray_offset(position, texel_size):
     return np.maximum(1e-3 * texel_size, 64 * np.finfo(np.float32).eps * np.maximum(magnitude, 1.0))
 
 
-def _rasterize_object(obj, tile, depsgraph, material_ids, atlas_w, atlas_h, maps):
+def _rasterize_object(target, tile, depsgraph, material_ids, atlas_w, atlas_h, maps):
+    obj = target.obj
     evaluated = obj.evaluated_get(depsgraph)
     mesh = evaluated.to_mesh()
     try:
@@ -483,7 +520,7 @@ def _rasterize_object(obj, tile, depsgraph, material_ids, atlas_w, atlas_h, maps
         corner_normals = normals.reshape(-1, 3)[loops]
     finally:
         evaluated.to_mesh_clear()
-    matrix = np.array(evaluated.matrix_world, dtype=np.float64)
+    matrix = np.array(target.matrix, dtype=np.float64)
     world = transform_points(matrix, coords)[verts]  # (T, 3, 3)
     flip = -1.0 if np.linalg.det(matrix[:3, :3]) < 0 else 1.0
     face = flip * np.cross(world[:, 1] - world[:, 0], world[:, 2] - world[:, 0])
@@ -532,17 +569,17 @@ def capture(scene, plan, out_dir, *, lightmap_uv_layer: str = "", progress=_noop
     """Run the capture stage for `plan` on `scene`, writing texel maps into `out_dir`."""
     start = time.perf_counter()
     out_dir = Path(out_dir)
-    missing = [o.name for o in plan.baked_objects if scene.objects.get(o.name) is None]
+    missing = [o.name for o in plan.baked_objects if not o.instancer and scene.objects.get(o.name) is None]
     if missing:
         raise BakeInputError(f"objects {missing} of the plan are not in scene '{scene.name}'; make a new plan")
-    objects = [scene.objects[o.name] for o in plan.baked_objects]
     warnings: list[str] = []
     progress(0.0, "lightmap UVs")
+    with active_scene(scene) as depsgraph:
+        targets = bake_targets(scene, plan.baked_objects, depsgraph)
+    objects = list(dict.fromkeys(t.obj for t in targets))
     with active_scene(scene), render_evaluation(objects):
-        tiles, atlas_w, atlas_h = _plan_layout(objects, plan.settings, lightmap_uv_layer, warnings)
-        for obj, tile in zip(objects, tiles):
-            u0, v0, su, sv = tile.rect
-            obj[OFFSET_KEY], obj[SCALE_KEY] = [u0, v0, 0.0], [su, sv, 1.0]
+        tiles, atlas_w, atlas_h = _plan_layout(targets, plan.settings, lightmap_uv_layer, warnings)
+        _store_tiles(targets, tiles)
         depsgraph = bpy.context.evaluated_depsgraph_get()
         depsgraph.update()
         materials = _material_table(objects, plan)
@@ -552,14 +589,14 @@ def capture(scene, plan, out_dir, *, lightmap_uv_layer: str = "", progress=_noop
             "material_id": np.zeros((atlas_h, atlas_w), np.int64), "texel_size": np.zeros((atlas_h, atlas_w)),
             "flags": np.zeros((atlas_h, atlas_w), np.int64),
         }
-        for k, (obj, tile) in enumerate(zip(objects, tiles)):
+        for k, (target, tile) in enumerate(zip(targets, tiles)):
             if should_cancel():
                 raise BakeCancelled("capture cancelled")
-            progress(0.1 + 0.4 * k / len(objects), f"texels of '{obj.name}'")
-            tile.texels = _rasterize_object(obj, tile, depsgraph, _object_material_ids(obj, materials),
+            progress(0.1 + 0.4 * k / len(targets), f"texels of '{target.name}'")
+            tile.texels = _rasterize_object(target, tile, depsgraph, _object_material_ids(target.obj, materials),
                                             atlas_w, atlas_h, maps)
             if tile.texels == 0:
-                warnings.append(f"'{obj.name}': no texel at {plan.settings.texel_density:g} texels/m")
+                warnings.append(f"'{target.name}': no texel at {plan.settings.texel_density:g} texels/m")
         covered = (maps["flags"] & FLAG_COVERED) > 0
         if not np.any(covered):
             raise BakeInputError(f"no texel was produced at {plan.settings.texel_density:g} texels/m; "
@@ -567,7 +604,7 @@ def capture(scene, plan, out_dir, *, lightmap_uv_layer: str = "", progress=_noop
         textured = {m.name for o in plan.objects for m in o.materials if m.baked and m.textured}
         progress(0.45, "material values of textured surfaces")
         maps["surface"], measured, probe_info = measure_surfaces(
-            scene, objects, tiles, (atlas_h, atlas_w), maps["object_id"], lambda material: material.name in textured)
+            scene, targets, tiles, (atlas_h, atlas_w), maps["object_id"], lambda material: material.name in textured)
         maps["measured"] = measured & covered
         progress(0.5, "push-out of texels inside geometry")
         bvh, scene_size = scene_bvh(scene, bpy.context.evaluated_depsgraph_get())  # the probes changed the scene

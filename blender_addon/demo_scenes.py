@@ -390,7 +390,8 @@ def _monkey(bm):
 def build_geometry(scene):
     """What real scenes are built from, each glossy: a smooth-shaded monkey primitive (its quads split across
     lightmap charts), a bar whose Bevel + Array + Subdivision stack stays live, an extruded text, a bevelled curve
-    and spheres instanced on a grid by Geometry Nodes, on a counter under an area lamp and a shipped HDRI."""
+    spheres instanced on a grid by Geometry Nodes and a collection instance of a cup, on a counter under an area lamp
+    and a shipped HDRI."""
     _mesh_object(scene, "Counter", _box(5.0, 3.0, 0.2), _principled("Counter Top", (0.55, 0.5, 0.45), roughness=0.35),
                  Matrix.Translation((0.0, 0.0, -0.1)))
     monkey = _mesh_object(scene, "Suzanne", _monkey, _principled("Red Plastic", (0.6, 0.05, 0.04), roughness=0.25),
@@ -422,6 +423,34 @@ def build_geometry(scene):
     curve_data.materials.append(_principled("Copper", (0.95, 0.64, 0.54), roughness=0.3, metallic=1.0))
     pipe = bpy.data.objects.new("Pipe", curve_data)
     scene.collection.objects.link(pipe)
+    marble = _mesh_object(scene, "Marble", _sphere(0.12, 16, 8), _principled("Chrome", (0.9, 0.9, 0.9), roughness=0.15,
+                                                                             metallic=1.0))
+    marble.hide_render = True  # shown only through its instances
+    marble.hide_viewport = True
+    scatter = bpy.data.node_groups.new("Marbles on a grid", "GeometryNodeTree")
+    scatter.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    scatter.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    points = scatter.nodes.new("GeometryNodeMeshGrid")
+    points.inputs["Vertices X"].default_value, points.inputs["Vertices Y"].default_value = 3, 2
+    points.inputs["Size X"].default_value, points.inputs["Size Y"].default_value = 0.8, 0.4
+    source = scatter.nodes.new("GeometryNodeObjectInfo")
+    source.inputs["Object"].default_value, source.inputs["As Instance"].default_value = marble, True
+    instance = scatter.nodes.new("GeometryNodeInstanceOnPoints")
+    scatter.links.new(points.outputs["Mesh"], instance.inputs["Points"])
+    scatter.links.new(source.outputs["Geometry"], instance.inputs["Instance"])
+    scatter.links.new(instance.outputs["Instances"], scatter.nodes.new("NodeGroupOutput").inputs[0])
+    grid = bpy.data.objects.new("Marble Grid", bpy.data.meshes.new("Marble Grid"))
+    grid.location = (1.4, -0.9, 0.12)
+    grid.modifiers.new("Scatter", "NODES").node_group = scatter
+    scene.collection.objects.link(grid)
+    cups = bpy.data.collections.new("Cup")  # linked to no scene: seen only through its instance
+    cup = _mesh_object(scene, "Cup", _box(0.25, 0.25, 0.35), _principled("Blue Glaze", (0.1, 0.2, 0.7), roughness=0.2))
+    scene.collection.objects.unlink(cup)
+    cups.objects.link(cup)
+    cup_instance = bpy.data.objects.new("Cup Instance", None)
+    cup_instance.instance_type, cup_instance.instance_collection = "COLLECTION", cups
+    cup_instance.location = (-0.6, 0.9, 0.175)
+    scene.collection.objects.link(cup_instance)
     lamp_data = bpy.data.lights.new("Area Lamp", type="AREA")
     lamp_data.energy, lamp_data.size = 200.0, 1.0
     lamp = bpy.data.objects.new("Area Lamp", lamp_data)
@@ -429,7 +458,7 @@ def build_geometry(scene):
     lamp.rotation_euler = (math.radians(30), math.radians(15), 0.0)
     scene.collection.objects.link(lamp)
     _world(scene, hdri="interior", strength=0.6)
-    _camera(scene, (2.2, -3.4, 2.0), (-0.2, 0.1, 0.2), lens=30.0)
+    _camera(scene, (1.9, -3.0, 1.7), (-0.2, 0.0, 0.25), lens=32.0)
 
 
 # Modifier stacks per style: (asset node group, {input name: value}) after Generate Hair Curves.

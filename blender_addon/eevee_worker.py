@@ -42,7 +42,7 @@ def restore_originals(scene):
     """The original materials back in the slots the bake switched (apply.baked_slots' reading of the record: this
     script runs without the add-on on its path)."""
     for object_name, slots in json.loads(scene.get(BAKE_RECORD_KEY, "{}")).items():
-        obj = scene.objects.get(object_name)
+        obj = scene.objects.get(object_name) or bpy.data.objects.get(object_name)  # instanced objects too
         for index, original in slots.items():
             if obj is not None and int(index) < len(obj.material_slots) and original in bpy.data.materials:
                 obj.material_slots[int(index)].material = bpy.data.materials[original]

@@ -40,13 +40,15 @@ try:  # inside the installed extension the numpy side is a sibling package
     from .apply import BAKE_RECORD_KEY, baked_slots
     from ..shaders.exr_io import read_exr
     from .render import compute_device, quiet_stdout, render_still
-    from .scene_analysis import active_scene, empty_node_material, principled_surface
+    from .capture import lightmap_owners
+    from .scene_analysis import active_scene, bake_targets, empty_node_material, principled_surface
     from .surface_probe import probe_material
     from .surface_shaders import BAKED_BSDFS, leaves
 except ImportError:  # bpy as a module with the repository on sys.path
     from blender_addon.apply import BAKE_RECORD_KEY, baked_slots
     from blender_addon.render import compute_device, quiet_stdout, render_still
-    from blender_addon.scene_analysis import active_scene, empty_node_material, principled_surface
+    from blender_addon.capture import lightmap_owners
+    from blender_addon.scene_analysis import active_scene, bake_targets, empty_node_material, principled_surface
     from blender_addon.surface_probe import probe_material
     from blender_addon.surface_shaders import BAKED_BSDFS, leaves
     from shaders.exr_io import read_exr
@@ -83,10 +85,11 @@ def _view_cameras(scene, plan, count):
     if scene.camera is not None:
         cameras.append((scene.camera, False))
     points = []
-    framed = plan.sg_objects or [o.name for o in plan.baked_objects]
-    for name in framed:
-        obj = scene.objects[name]
-        points += [obj.matrix_world @ Vector(corner) for corner in obj.bound_box]
+    framed = set(plan.sg_objects) or {o.name for o in plan.baked_objects}
+    with active_scene(scene) as depsgraph:
+        targets = bake_targets(scene, [o for o in plan.baked_objects if o.name in framed], depsgraph)
+    for target in targets:
+        points += [target.matrix @ Vector(corner) for corner in target.obj.bound_box]
     if not points:
         return cameras
     lo = Vector(np.min(np.array(points), axis=0))
@@ -127,7 +130,7 @@ def surface_images(scene, camera, path) -> tuple[np.ndarray, np.ndarray, list[st
     record = json.loads(scene.get(BAKE_RECORD_KEY, "{}"))
     emissions, names, undo, created, created_groups = {}, [], [], [], []
     try:
-        for obj in scene.objects:
+        for obj in lightmap_owners(scene):  # the scene's objects and those its instances show
             for index, slot in enumerate(getattr(obj, "material_slots", [])):
                 original_name = record.get(obj.name, {}).get(str(index))
                 original = bpy.data.materials.get(original_name) if original_name else slot.material

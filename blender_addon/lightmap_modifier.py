@@ -12,6 +12,12 @@ cannot hold one UV per corner for xatlas's charts (a quad split across two chart
      copy falls back to the carrier's nearest surface point, nudged towards the face centre so a corner on a chart
      seam reads its own face's chart; the next capture lays it out again.
 
+Instances: on an object whose Geometry Nodes make instances of other objects, the same modifier gives each top-level
+instance its atlas tile as the instance attributes ``sglf_lightmap_offset`` and ``sglf_lightmap_scale`` (copied from
+the vertex of a second helper mesh, ``SG Lightmap instance tiles: OBJECT``, nearest to the instance's position); the
+baked material reads them through Instancer attributes, which fall back to the object's own properties elsewhere. The
+instances' own geometry passes through untouched (Separate Components: only the mesh is triangulated).
+
 Why a modifier and not a UV layer on the mesh data: a layer on the original mesh is what Array, Mirror, Bevel and
 Subdivision copy or interpolate, so their copies share texels; the user would have to apply the stack. Remove SG Bake
 takes the modifier, its carrier and the node group away, and the object's modifier list is what it was.
@@ -26,6 +32,11 @@ NODE_GROUP_NAME = "SG Lightmap UV"
 CARRIER_PREFIX = "SG Lightmap carrier: "
 OWNED_KEY = "sglf_lightmap_modifier"  # on our modifier's node group and carriers: made by SG Lightfield
 CARRIER_INPUT = "Carrier"
+INSTANCE_TILES_INPUT = "Instance tiles"
+INSTANCE_TILES_PREFIX = "SG Lightmap instance tiles: "
+# Per-instance atlas tiles, as instance attributes (read by the baked material's Instancer attributes); the names
+# are the object properties of an object's own tile (capture.OFFSET_KEY, SCALE_KEY).
+INSTANCE_ATTRIBUTES = ("sglf_lightmap_offset", "sglf_lightmap_scale")
 MODIFIER_TYPES = {"MESH", "CURVE", "FONT"}  # object types a Geometry Nodes modifier can be added to
 
 
@@ -52,7 +63,8 @@ def _node(tree, kind, **props):
 
 
 def lightmap_node_group():
-    """The shared Geometry Nodes group of the modifier (made once per file)."""
+    """The shared Geometry Nodes group of the modifier (made once per file). Its mesh gets the lightmap UV; its
+    top-level instances get their atlas tiles as instance attributes; the instances' own geometry is left alone."""
     existing = next((g for g in bpy.data.node_groups if g.get(OWNED_KEY) and g.bl_idname == "GeometryNodeTree"), None)
     if existing is not None:
         return existing
@@ -60,15 +72,31 @@ def lightmap_node_group():
     tree[OWNED_KEY] = True
     tree.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
     tree.interface.new_socket(CARRIER_INPUT, in_out="INPUT", socket_type="NodeSocketObject")
+    tree.interface.new_socket(INSTANCE_TILES_INPUT, in_out="INPUT", socket_type="NodeSocketObject")
     tree.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
-    nodes, link = tree.nodes, tree.links.new
+    link = tree.links.new
     group_in, group_out = _node(tree, "NodeGroupInput"), _node(tree, "NodeGroupOutput")
+    parts = _node(tree, "GeometryNodeSeparateComponents")
+    link(group_in.outputs["Geometry"], parts.inputs[0])
+    join = _node(tree, "GeometryNodeJoinGeometry")
+    link(_lightmap_uv_nodes(tree, parts.outputs["Mesh"], group_in.outputs[CARRIER_INPUT]), join.inputs[0])
+    for name in ("Curve", "Point Cloud", "Volume", "Grease Pencil"):
+        if name in parts.outputs:
+            link(parts.outputs[name], join.inputs[0])
+    link(_instance_tile_nodes(tree, parts.outputs["Instances"], group_in.outputs[INSTANCE_TILES_INPUT]), join.inputs[0])
+    link(join.outputs[0], group_out.inputs["Geometry"])
+    return tree
+
+
+def _lightmap_uv_nodes(tree, mesh_socket, carrier_socket):
+    """Triangulate the mesh and store the carrier's UVs as SGLightmap; returns the output socket."""
+    link = tree.links.new
     triangulate = _node(tree, "GeometryNodeTriangulate")
     _set_enum_input(triangulate, "Quad Method", "quad_method", "FIXED")
     _set_enum_input(triangulate, "N-gon Method", "ngon_method", "CLIP")
-    link(group_in.outputs["Geometry"], triangulate.inputs["Mesh"])
+    link(mesh_socket, triangulate.inputs["Mesh"])
     carrier = _node(tree, "GeometryNodeObjectInfo", transform_space="ORIGINAL")
-    link(group_in.outputs[CARRIER_INPUT], carrier.inputs["Object"])
+    link(carrier_socket, carrier.inputs["Object"])
     stored_uv = _node(tree, "GeometryNodeInputNamedAttribute", data_type="FLOAT_VECTOR")
     stored_uv.inputs["Name"].default_value = "SGLightmap"
     by_index = _node(tree, "GeometryNodeSampleIndex", data_type="FLOAT_VECTOR", domain="CORNER")
@@ -102,8 +130,38 @@ def lightmap_node_group():
     store.inputs["Name"].default_value = "SGLightmap"
     link(triangulate.outputs[0], store.inputs["Geometry"])
     link(choose.outputs[0], store.inputs["Value"])
-    link(store.outputs[0], group_out.inputs["Geometry"])
-    return tree
+    return store.outputs[0]
+
+
+def _instance_tile_nodes(tree, instances_socket, tiles_socket):
+    """Give each top-level instance the tile of the tiles object's vertex nearest to its position (the instancer's
+    space); without tiles the instances pass unchanged. Returns the output socket."""
+    link = tree.links.new
+    tiles = _node(tree, "GeometryNodeObjectInfo", transform_space="ORIGINAL")
+    link(tiles_socket, tiles.inputs["Object"])
+    nearest = _node(tree, "GeometryNodeSampleNearest", domain="POINT")
+    link(tiles.outputs["Geometry"], nearest.inputs["Geometry"])
+    link(_node(tree, "GeometryNodeInputPosition").outputs[0], nearest.inputs["Sample Position"])
+    count = _node(tree, "GeometryNodeAttributeDomainSize", component="MESH")
+    link(tiles.outputs["Geometry"], count.inputs[0])
+    any_tiles = _node(tree, "FunctionNodeCompare", data_type="INT", operation="GREATER_THAN")
+    link(count.outputs["Point Count"], any_tiles.inputs["A"])
+    any_tiles.inputs["B"].default_value = 0
+    socket = instances_socket
+    for name in INSTANCE_ATTRIBUTES:
+        value = _node(tree, "GeometryNodeInputNamedAttribute", data_type="FLOAT_VECTOR")
+        value.inputs["Name"].default_value = name
+        sample = _node(tree, "GeometryNodeSampleIndex", data_type="FLOAT_VECTOR", domain="POINT")
+        link(tiles.outputs["Geometry"], sample.inputs["Geometry"])
+        link(value.outputs["Attribute"], sample.inputs["Value"])
+        link(nearest.outputs["Index"], sample.inputs["Index"])
+        store = _node(tree, "GeometryNodeStoreNamedAttribute", data_type="FLOAT_VECTOR", domain="INSTANCE")
+        store.inputs["Name"].default_value = name
+        link(socket, store.inputs["Geometry"])
+        link(any_tiles.outputs[0], store.inputs["Selection"])
+        link(sample.outputs[0], store.inputs["Value"])
+        socket = store.outputs[0]
+    return socket
 
 
 def _set_enum_input(node, socket_name, property_name, value):
@@ -115,13 +173,51 @@ def _set_enum_input(node, socket_name, property_name, value):
         setattr(node, property_name, value)
 
 
+def _input_identifier(modifier, name):
+    return next(i.identifier for i in modifier.node_group.interface.items_tree
+                if i.item_type == "SOCKET" and i.in_out == "INPUT" and i.name == name)
+
+
 def carrier_of(obj):
     modifier = lightmap_modifier(obj)
-    if modifier is None:
-        return None
-    identifier = next(i.identifier for i in modifier.node_group.interface.items_tree
-                      if i.item_type == "SOCKET" and i.name == CARRIER_INPUT)
-    return modifier[identifier]
+    return None if modifier is None else modifier[_input_identifier(modifier, CARRIER_INPUT)]
+
+
+def instance_tiles_of(obj):
+    modifier = lightmap_modifier(obj)
+    return None if modifier is None else modifier[_input_identifier(modifier, INSTANCE_TILES_INPUT)]
+
+
+def swap_instance_tiles(obj, tiles):
+    """Give `obj`'s modifier another instance-tiles object (None: its instances read their object's own tile);
+    returns the one it had."""
+    modifier = lightmap_modifier(obj)
+    identifier = _input_identifier(modifier, INSTANCE_TILES_INPUT)
+    previous, modifier[identifier] = modifier[identifier], tiles
+    _reevaluate(obj, modifier)
+    return previous
+
+
+def set_instance_tiles(obj, positions, offsets, scales) -> None:
+    """Give `obj`'s modifier the atlas tiles of its top-level instances: one vertex per instance at its position in
+    `obj`'s space, with the tile's offset and scale (atlas_uv = offset + uv * scale) as vertex attributes."""
+    modifier = lightmap_modifier(obj)
+    mesh = bpy.data.meshes.new(f"{INSTANCE_TILES_PREFIX}{obj.name}")
+    mesh[OWNED_KEY] = True
+    mesh.vertices.add(len(positions))
+    mesh.vertices.foreach_set("co", np.asarray(positions, np.float32).ravel())
+    for name, values in zip(INSTANCE_ATTRIBUTES, (offsets, scales)):
+        mesh.attributes.new(name, "FLOAT_VECTOR", "POINT").data.foreach_set(
+            "vector", np.asarray(values, np.float32).ravel())
+    mesh.update()
+    tiles = instance_tiles_of(obj)
+    if tiles is None:
+        tiles = bpy.data.objects.new(f"{INSTANCE_TILES_PREFIX}{obj.name}", mesh)
+        tiles[OWNED_KEY] = True
+        modifier[_input_identifier(modifier, INSTANCE_TILES_INPUT)] = tiles
+    else:
+        tiles.data = mesh
+    _reevaluate(obj, modifier)
 
 
 def attach(obj):
@@ -164,9 +260,7 @@ def set_carrier(obj, evaluated_mesh, loop_uv):
     if carrier is None:
         carrier = bpy.data.objects.new(f"{CARRIER_PREFIX}{obj.name}", mesh)
         carrier[OWNED_KEY] = True
-        identifier = next(i.identifier for i in modifier.node_group.interface.items_tree
-                          if i.item_type == "SOCKET" and i.name == CARRIER_INPUT)
-        modifier[identifier] = carrier
+        modifier[_input_identifier(modifier, CARRIER_INPUT)] = carrier
     else:
         previous, carrier.data = carrier.data, mesh
     _reevaluate(obj, modifier)
@@ -193,14 +287,13 @@ def detach(obj) -> bool:
     modifier = lightmap_modifier(obj)
     if modifier is None:
         return False
-    carrier = carrier_of(obj)
+    helpers = [o for o in (carrier_of(obj), instance_tiles_of(obj)) if o is not None]
     obj.modifiers.remove(modifier)
-    if carrier is not None:
-        meshes = {carrier.data}
-        bpy.data.objects.remove(carrier)
-        for mesh in meshes:
-            if mesh is not None and mesh.users == 0:
-                bpy.data.meshes.remove(mesh)
+    for helper in helpers:
+        mesh = helper.data
+        bpy.data.objects.remove(helper)
+        if mesh is not None and mesh.users == 0:
+            bpy.data.meshes.remove(mesh)
     remove_orphans()
     return True
 

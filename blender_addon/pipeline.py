@@ -23,13 +23,14 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
     from . import apply as apply_module
     from . import lightmap_modifier
-    from .capture import LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, capture, remove_lightmap_uvs
+    from .capture import LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, capture, lightmap_owners, remove_lightmap_uvs
     from .render import render_steps
     from .scene_analysis import build_plan
 except ImportError:  # bpy as a module with the repository on sys.path
     from blender_addon import apply as apply_module
     from blender_addon import lightmap_modifier
-    from blender_addon.capture import LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, capture, remove_lightmap_uvs
+    from blender_addon.capture import (LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, capture, lightmap_owners,
+                                        remove_lightmap_uvs)
     from blender_addon.render import render_steps
     from blender_addon.scene_analysis import build_plan
     from shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
@@ -134,7 +135,7 @@ class BakeJob:
         import numpy as np
 
         snapshot = {"meshes": {}, "objects": {}, "carriers": {}}
-        for obj in self.scene.objects:
+        for obj in lightmap_owners(self.scene):
             carrier = lightmap_modifier.carrier_of(obj)
             if carrier is not None:  # kept alive until the job ends: capture gives the carrier a new mesh
                 carrier.data.use_fake_user = True
@@ -154,7 +155,7 @@ class BakeJob:
         if not snapshot["meshes"] and not snapshot["carriers"]:
             remove_lightmap_uvs(self.scene)  # nothing was baked before: the scene had no lightmap data at all
             return
-        for obj in self.scene.objects:
+        for obj in lightmap_owners(self.scene):
             saved = snapshot["objects"].get(obj.name, {})
             for key in (OFFSET_KEY, SCALE_KEY):
                 if key in saved:

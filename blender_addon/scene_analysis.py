@@ -164,19 +164,39 @@ def principled_surface(material) -> dict:
             "f0": [float(c) for c in np.clip(np.asarray(f0, float), 0.0, 1.0)], "textured": textured}
 
 
+NESTED_ID = 2147483647  # an unused level of an instance's persistent_id
+
+
 @dataclass
 class Instanced:
-    """What one object instances (geometry nodes, a collection, particles, vertex or face instancing)."""
+    """What one object instances (geometry nodes, a collection, particles, vertex or face instancing), in the
+    depsgraph's order: each entry (source object name, world matrix as nested lists)."""
     how: str
     count: int = 0
     sources: set = field(default_factory=set)  # the instanced objects' names; "generated geometry" for node output
+    entries: list = field(default_factory=list)
+    nested: bool = False  # instances inside instances (a collection through Collection Info, nested instancers)
 
     def description(self) -> str:
         return f"{self.count} {self.how} instance{'s' if self.count != 1 else ''} of {', '.join(sorted(self.sources))}"
 
+    def unsupported(self) -> str:
+        """Why per-instance lightmaps cannot be built for these instances ("" when they can)."""
+        if "generated geometry" in self.sources:
+            return "their geometry is made inside the node tree, not an object whose materials the bake can switch"
+        if self.how in ("particle", "vertex", "face"):
+            return f"{self.how} instances carry no attribute of their own for the baked material to find its texels by"
+        if self.nested:
+            return "instances nested inside instances share one attribute, not one lightmap tile each"
+        if self.how == "collection" and len(self.sources) > 1:
+            return "a collection instance of several objects gives them one attribute, not one lightmap tile each"
+        return ""
+
     def reason(self) -> str:
-        return (f"left to the renderer: {self.description()} (per-instance lightmaps are not built yet; each "
-                "instance keeps the renderer's own lighting)")
+        why = self.unsupported()
+        if why:
+            return f"left to the renderer: {self.description()} ({why}; each keeps the renderer's own lighting)"
+        return f"its {self.description()}: each baked with texels of its own (listed below)"
 
 
 def instances_by_instancer(depsgraph) -> dict:
@@ -202,7 +222,65 @@ def instances_by_instancer(depsgraph) -> dict:
         entry.count += 1
         source = instance.object.original
         entry.sources.add(source.name if source != parent else "generated geometry")
+        entry.entries.append((source.name, [list(row) for row in instance.matrix_world]))
+        levels = [i for i in instance.persistent_id if i != NESTED_ID]
+        entry.nested |= len(levels) > (1 if how == "collection" else 2)
     return found
+
+
+def instance_targets(instanced_name, instanced: Instanced) -> list:
+    """The plan names of a supported instancer's instances, in order: 'Grid: Sphere #3'."""
+    return [f"{instanced_name}: {source} #{k + 1}" for k, (source, _) in enumerate(instanced.entries)]
+
+
+@dataclass
+class BakeTarget:
+    """One baked thing of a plan in the scene: an object, or one instance of an instanced object."""
+    name: str
+    obj: object  # whose surface and material slots it has (the instanced object for an instance)
+    matrix: object  # its world matrix (mathutils.Matrix)
+    instancer: object = None  # the object instancing it; None for an object of the scene itself
+
+
+def bake_targets(scene, object_plans, depsgraph) -> list:
+    """The BakeTarget of each ObjectPlan, found in the evaluated scene; one clear error where the scene changed."""
+    from mathutils import Matrix
+
+    instancers, targets = None, []
+    for plan in object_plans:
+        if not plan.instancer:
+            obj = scene.objects.get(plan.name)
+            if obj is None:
+                raise BakeInputError(f"object '{plan.name}' of the plan is not in scene '{scene.name}'; make a new plan")
+            targets.append(BakeTarget(plan.name, obj, obj.matrix_world.copy()))
+            continue
+        instancers = instances_by_instancer(depsgraph) if instancers is None else instancers
+        found = instancers.get(plan.instancer)
+        if found is None or plan.instance >= len(found.entries) or found.entries[plan.instance][0] != plan.source:
+            raise BakeInputError(f"'{plan.name}': the instances of '{plan.instancer}' changed since the plan; make a "
+                                 "new plan")
+        targets.append(BakeTarget(plan.name, bpy.data.objects[plan.source], Matrix(found.entries[plan.instance][1]),
+                                  bpy.data.objects[plan.instancer]))
+    return targets
+
+
+def _instance_plans(instancer, instanced: Instanced, settings, depsgraph, surfaces_of) -> list:
+    """One ObjectPlan per instance of a supported instancer: its source's materials, its area under its matrix."""
+    plans = []
+    for k, (name, (source, matrix)) in enumerate(zip(instance_targets(instancer, instanced), instanced.entries)):
+        obj = bpy.data.objects[source]
+        _, mat_plans = surfaces_of(obj)
+        area = _world_area(obj, depsgraph, matrix)
+        glossy = [mp.name for mp in mat_plans if mp.glossy]
+        lightmapped = [mp.name for mp in mat_plans if mp.irradiance_only]
+        baked = bool(glossy or lightmapped) and area > 0 and obj.type in MODIFIER_TYPES
+        reason = "; ".join(([f"glossy material(s): {', '.join(glossy)}"] if glossy else [])
+                           + ([f"irradiance lightmap: {', '.join(lightmapped)}"] if lightmapped else [])) or \
+            "no glossy or lightmapped material: left to the renderer's own lighting"
+        plans.append(ObjectPlan(name, round(area, 6), int(np.ceil(area * settings.texel_density**2)) if baked else 0,
+                                baked, mat_plans, reason, f"{instanced.how} instance {k + 1} of {instanced.count}, "
+                                f"of '{source}' on '{instancer}'", instancer=instancer, source=source, instance=k))
+    return plans
 
 
 def _why_no_surface(obj) -> str:
@@ -242,14 +320,15 @@ def triangle_areas(points, verts):
     return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
 
 
-def _world_area(obj, depsgraph) -> float:
+def _world_area(obj, depsgraph, matrix=None) -> float:
     evaluated = obj.evaluated_get(depsgraph)
     mesh = evaluated.to_mesh()
     try:
-        if len(mesh.polygons) == 0:
+        if mesh is None or len(mesh.polygons) == 0:
             return 0.0
         _, verts, _, coords = loop_triangle_arrays(mesh)
-        return float(triangle_areas(transform_points(obj.matrix_world, coords), verts).sum())
+        return float(triangle_areas(transform_points(obj.matrix_world if matrix is None else matrix, coords),
+                                    verts).sum())
     finally:
         evaluated.to_mesh_clear()
 
@@ -364,12 +443,19 @@ def _build_plan(scene, settings: BakeSettings, depsgraph) -> BakePlan:
         raise BakeInputError("nothing to bake: the scene has no mesh, curve or text objects"
                              + (f" (only {', '.join(kinds)})" if kinds else " (it is empty)"))
     objects, emissive, warnings = [], [], []
+    analysed = {}
+
+    def surfaces_of(obj):
+        mats = [slot.material for slot in obj.material_slots] or [None]
+        for m in mats:
+            if m not in analysed:
+                analysed[m] = analyse_material(m, settings)
+        return mats, [analysed[m] for m in mats]
+
     every_instancer = instances_by_instancer(depsgraph)
     instances = dict(every_instancer)  # the ones not yet in the plan
     for obj in shapes:
-        mats = [slot.material for slot in obj.material_slots] or [None]
-        surfaces = {m: analyse_material(m, settings) for m in dict.fromkeys(mats)}
-        mat_plans = [surfaces[m] for m in mats]
+        mats, mat_plans = surfaces_of(obj)
         if any(_is_emissive(unbaked(m)) for m in mats if m is not None):
             emissive.append(obj.name)
         geometry = geometry_description(obj)
@@ -401,13 +487,16 @@ def _build_plan(scene, settings: BakeSettings, depsgraph) -> BakePlan:
         objects.append(ObjectPlan(obj.name, round(area, 6), texels, baked, mat_plans, reason, geometry))
     for name, instanced in sorted(instances.items()):  # empties instancing collections, and the like
         objects.append(ObjectPlan(name, 0.0, 0, False, [], instanced.reason(), instanced.description()))
-    glossy_instances = sorted({source for o in every_instancer.values() for source in o.sources
+    for name, instanced in every_instancer.items():
+        if not instanced.unsupported():
+            objects += _instance_plans(name, instanced, settings, depsgraph, surfaces_of)
+    glossy_instances = sorted({source for o in every_instancer.values() if o.unsupported() for source in o.sources
                                if bpy.data.objects.get(source) is not None and any(
                                    analyse_material(s.material, settings).glossy
                                    for s in bpy.data.objects[source].material_slots if s.material is not None)})
     for obj in objects:
-        instancers = sorted(name for name, o in every_instancer.items()
-                            if obj.bake_lightfield and obj.name in o.sources and name != obj.name)
+        instancers = sorted(name for name, o in every_instancer.items() if o.unsupported()
+                            and obj.bake_lightfield and obj.name in o.sources and name != obj.name)
         if instancers:
             warnings.append(f"'{obj.name}' is baked and also instanced by {', '.join(instancers)}: its instances show "
                             f"the lighting baked where '{obj.name}' itself stands")
@@ -416,7 +505,7 @@ def _build_plan(scene, settings: BakeSettings, depsgraph) -> BakePlan:
                         + ", ".join(glossy_instances) + "; each keeps the renderer's own lighting")
     if not any(o.bake_lightfield for o in objects):
         left = sorted({mp.name for o in objects for mp in o.materials if mp.reason.startswith("left to the renderer")})
-        raise BakeInputError("nothing to bake: no object has a glossy material (roughness below "
+        raise BakeInputError("nothing to bake: no object or instance has a glossy material (roughness below "
                              f"{GLOSSY_ROUGHNESS_MAX}) or a rough one to lightmap; the light field would not be used"
                              + (f" (left to the renderer: {', '.join(left)}; see the plan for why)" if left else "")
                              + (f"; {warnings[-1]}" if glossy_instances else ""))

@@ -63,17 +63,17 @@ def _probe_material(original, name: str):
                           lambda inputs, node: (0.0, 0.0, 0.0) if node.type in KEPT_SHADERS else _quantity(inputs, name))
 
 
-def _bake_tile(scene, obj, tile, image, material_for_slot) -> np.ndarray:
-    """EMIT-bake `obj` into `image` (resized to its tile) with each slot's material swapped for
+def _bake_tile(scene, target, tile, image, material_for_slot) -> np.ndarray:
+    """EMIT-bake the target into `image` (resized to its tile) with each slot's material swapped for
     material_for_slot(original) (which must hold an active Image Texture node; its image is set here); the slots are
     restored before returning. Returns (h, w, 3), row 0 = the tile's top row."""
     x, y, w, h = (int(v) for v in tile.pixel_rect)
     if tuple(image.size) != (w, h):
         image.scale(w, h)
     undo = []
-    with _bake_target(scene, obj) as target:
+    with _bake_object(scene, target) as baked:
         try:
-            for slot in target.material_slots:
+            for slot in baked.material_slots:
                 original = unbaked(slot.material) if slot.material is not None else None
                 if original is None:
                     continue
@@ -81,9 +81,9 @@ def _bake_tile(scene, obj, tile, image, material_for_slot) -> np.ndarray:
                 probe.node_tree.nodes.active.image = image
                 undo.append((slot, slot.material))
                 slot.material = probe
-            with bpy.context.temp_override(scene=scene, view_layer=scene.view_layers[0], active_object=target,
-                                           object=target, selected_objects=[target],
-                                           selected_editable_objects=[target]), quiet_stdout():
+            with bpy.context.temp_override(scene=scene, view_layer=scene.view_layers[0], active_object=baked,
+                                           object=baked, selected_objects=[baked],
+                                           selected_editable_objects=[baked]), quiet_stdout():
                 # texels whose centre misses every triangle (chart edges) get their nearest baked neighbour
                 bpy.ops.object.bake(type="EMIT", uv_layer=tile.uv_layer, margin=EDGE_MARGIN, margin_type="EXTEND",
                                     use_clear=True, target="IMAGE_TEXTURES")
@@ -96,26 +96,28 @@ def _bake_tile(scene, obj, tile, image, material_for_slot) -> np.ndarray:
 
 
 @contextlib.contextmanager
-def _bake_target(scene, obj):
-    """What Cycles bakes for `obj`: the object itself when it renders its mesh data; otherwise (a modifier stack, the
-    SG Lightmap UV modifier, text, curves) a temporary mesh object holding its evaluated surface, which Blender's bake
-    can take (it bakes mesh objects only and looks the UV layer up on the mesh data)."""
-    if obj.type == "MESH" and not obj.modifiers:
+def _bake_object(scene, target):
+    """What Cycles bakes for a capture target: the object itself when it renders its mesh data where it stands;
+    otherwise (a modifier stack, the SG Lightmap UV modifier, text, curves, an instance) a temporary mesh object
+    holding its evaluated surface at the target's matrix, which Blender's bake can take (it bakes mesh objects only
+    and looks the UV layer up on the mesh data)."""
+    obj = target.obj
+    if obj.type == "MESH" and not obj.modifiers and target.instancer is None:
         yield obj
         return
     depsgraph = bpy.context.evaluated_depsgraph_get()
     mesh = bpy.data.meshes.new_from_object(obj.evaluated_get(depsgraph), preserve_all_data_layers=True,
                                            depsgraph=depsgraph)
-    target = bpy.data.objects.new(f"{obj.name} (SG probe)", mesh)
-    target.matrix_world = obj.matrix_world
+    copy = bpy.data.objects.new(f"{obj.name} (SG probe)", mesh)
+    copy.matrix_world = target.matrix
     for index, slot in enumerate(obj.material_slots):
-        if index < len(target.material_slots):
-            target.material_slots[index].material = slot.material
-    scene.collection.objects.link(target)
+        if index < len(copy.material_slots):
+            copy.material_slots[index].material = slot.material
+    scene.collection.objects.link(copy)
     try:
-        yield target
+        yield copy
     finally:
-        bpy.data.objects.remove(target)
+        bpy.data.objects.remove(copy)
         bpy.data.meshes.remove(mesh)
 
 
@@ -136,17 +138,18 @@ class _CyclesBakeSettings:
         render.engine, cycles.samples, cycles.use_denoising = self.saved
 
 
-def measure_surfaces(scene, objects, tiles, atlas_shape, object_ids, should_measure) -> tuple[np.ndarray, np.ndarray,
+def measure_surfaces(scene, targets, tiles, atlas_shape, object_ids, should_measure) -> tuple[np.ndarray, np.ndarray,
                                                                                                dict]:
-    """Bake the surface quantities of `objects` (each with its tile) whose materials `should_measure(material)`.
+    """Bake the surface quantities of the capture `targets` (scene_analysis.BakeTarget, each with its tile) whose
+    materials `should_measure(material)`.
     object_ids: (H, W) the atlas' object id per texel (0 = none). Returns ((H, W, 8) values, (H, W) measured mask,
     {'seconds', 'objects'})."""
     start = time.perf_counter()
     height, width = atlas_shape
     values = np.zeros((height, width, SURFACE_CHANNELS), np.float32)
     measured = np.zeros((height, width), bool)
-    chosen = [(obj, tile) for obj, tile in zip(objects, tiles)
-              if any(s.material is not None and should_measure(unbaked(s.material)) for s in obj.material_slots)]
+    chosen = [(target, tile) for target, tile in zip(targets, tiles) if any(
+        s.material is not None and should_measure(unbaked(s.material)) for s in target.obj.material_slots)]
     if not chosen:
         return values, measured, {"seconds": 0.0, "objects": []}
     probes, created_groups = {}, []
@@ -162,12 +165,12 @@ def measure_surfaces(scene, objects, tiles, atlas_shape, object_ids, should_meas
 
     try:
         with _CyclesBakeSettings(scene):
-            for obj, tile in chosen:
+            for target, tile in chosen:
                 x, y, w, h = tile.pixel_rect
                 mine = object_ids[y:y + h, x:x + w] == tile.id
                 block = values[y:y + h, x:x + w]
                 for k, name in enumerate(PASSES):
-                    baked = _bake_tile(scene, obj, tile, image, probe_for(name))
+                    baked = _bake_tile(scene, target, tile, image, probe_for(name))
                     if k == 0:
                         block[mine, 0:2] = baked[mine][:, :2]
                     else:
@@ -181,11 +184,11 @@ def measure_surfaces(scene, objects, tiles, atlas_shape, object_ids, should_meas
                 bpy.data.node_groups.remove(group)
         bpy.data.images.remove(image)
     np.clip(values, 0.0, 1.0, out=values)
-    return values, measured, {"seconds": round(time.perf_counter() - start, 3), "objects": [o.name for o, _ in chosen]}
+    return values, measured, {"seconds": round(time.perf_counter() - start, 3), "objects": [t.name for t, _ in chosen]}
 
 
-def mean_of_links(scene, obj, tile, object_ids, material, inputs) -> dict:
-    """The mean over `obj`'s texels of what the links into `inputs` of `material` carry: {(node name, input
+def mean_of_links(scene, target, tile, object_ids, material, inputs) -> dict:
+    """The mean over a capture target's texels (scene_analysis.BakeTarget) of what the links into `inputs` of `material` carry: {(node name, input
     identifier): RGB}, each by an EMIT bake of a copy of the material whose surface is an Emission of that link.
     Only nodes of the material's own tree are named (not inside node groups)."""
     x, y, w, h = tile.pixel_rect
@@ -208,7 +211,7 @@ def mean_of_links(scene, obj, tile, object_ids, material, inputs) -> dict:
                     tree.nodes.active = tree.nodes.new("ShaderNodeTexImage")
                     return copy
 
-                baked = _bake_tile(scene, obj, tile, image, material_for_slot)
+                baked = _bake_tile(scene, target, tile, image, material_for_slot)
                 means[(node_name, identifier)] = tuple(float(v) for v in baked[mine].mean(axis=0))
     finally:
         for copy in made:

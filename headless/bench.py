@@ -446,7 +446,7 @@ def _texture_means(scene, out_dir: Path) -> dict:
     import numpy as np
 
     from blender_addon.capture import ObjectTile
-    from blender_addon.scene_analysis import unbaked
+    from blender_addon.scene_analysis import BakeTarget, unbaked
     from blender_addon.surface_probe import mean_of_links
     from blender_addon.surface_shaders import BAKED_BSDFS
     from shaders.texel_maps import channels, read_texel_maps
@@ -456,7 +456,9 @@ def _texture_means(scene, out_dir: Path) -> dict:
     means = {}
     for entry in info["objects"]:
         tile = ObjectTile(**entry)
-        obj = scene.objects[tile.name]
+        obj = scene.objects.get(tile.name)
+        if obj is None:  # an instance: measured through its object's first tile
+            continue
         for slot in obj.material_slots:
             material = unbaked(slot.material)
             if material is None or material.name in means:
@@ -465,7 +467,8 @@ def _texture_means(scene, out_dir: Path) -> dict:
                       if node.type in BAKED_BSDFS | {"MIX_SHADER", "EMISSION"}
                       for socket in node.inputs if socket.type != "SHADER" and socket.is_linked]
             if inputs:
-                means[material.name] = mean_of_links(scene, obj, tile, object_ids, material, inputs)
+                means[material.name] = mean_of_links(scene, BakeTarget(obj.name, obj, obj.matrix_world.copy()), tile,
+                                                     object_ids, material, inputs)
     return means
 
 
@@ -575,8 +578,44 @@ def bench_geometry(out_root: Path, preset="draft") -> list[dict]:
                  "eevee_without_bake_flip": _rounded(alone.get("flip"))})
     print(f"geometry {preset}: capture {rows[-1]['capture_s']} s, bake {rows[-1]['bake_s']} s; FLIP Cycles "
           f"{rows[-1]['flip']}, EEVEE with the bake {rows[-1]['eevee_flip']}, without {rows[-1]['eevee_without_bake_flip']}")
+    rows[-1].update(_instance_tile_cost(scene))
+    print(f"geometry {preset}: EEVEE frame at 960 x 540 {rows[-1]['eevee_frame_s_instance_tiles']} s with per-instance "
+          f"tiles, {rows[-1]['eevee_frame_s_object_tiles']} s with the instances reading their object's tile")
     _discard_scene(scene)
     return rows
+
+
+def _instance_tile_cost(scene, frames=3) -> dict:
+    """EEVEE's frame time of a baked scene (median of `frames` renders after one that compiles the shaders) with its
+    instances' own tiles, and with them taken off (every instance then reads its object's tile: the lookup's cost)."""
+    import statistics
+
+    import bpy
+
+    from blender_addon import lightmap_modifier
+    from blender_addon.scene_analysis import active_scene, quiet_stdout
+
+    scene.render.engine = "BLENDER_EEVEE"
+    scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 960, 540, 100
+    scene.render.filepath = "/dev/null" if sys.platform != "win32" else "NUL"
+
+    def frame_s():
+        times = []
+        with active_scene(scene), quiet_stdout():
+            for k in range(frames + 1):
+                start = time.perf_counter()
+                bpy.ops.render.render(scene=scene.name)
+                times.append(time.perf_counter() - start)
+        return round(statistics.median(times[1:]), 3)
+
+    with_tiles = frame_s()
+    saved = {obj: lightmap_modifier.swap_instance_tiles(obj, None) for obj in scene.objects
+             if lightmap_modifier.instance_tiles_of(obj) is not None}
+    without = frame_s()
+    for obj, tiles in saved.items():
+        lightmap_modifier.swap_instance_tiles(obj, tiles)
+    return {"eevee_frame_s_instance_tiles": with_tiles, "eevee_frame_s_object_tiles": without,
+            "instancers": sorted(o.name for o in saved)}
 
 
 def _discard_scene(scene):

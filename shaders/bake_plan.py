@@ -187,6 +187,11 @@ class ObjectPlan:
     materials: list[MaterialPlan] = field(default_factory=list)
     reason: str = ""
     geometry: str = "mesh"  # what its evaluated surface is: "mesh", "mesh + Bevel, Array", "text", "curve", ...
+    # An instance: the object that instances it, the instanced object and its place among that instancer's instances
+    # (scene_analysis.instances_by_instancer's order); empty / -1 for an object of the scene itself.
+    instancer: str = ""
+    source: str = ""
+    instance: int = -1
 
 
 @dataclass

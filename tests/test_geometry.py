@@ -1,5 +1,6 @@
 """Real geometry (bpy as a module): modifier stacks stay live, text and curves bake as their evaluated meshes, small
-objects get texels of their own, and what is not baked (instances, metaballs, NURBS surfaces) is named with a reason."""
+objects and every instance get texels of their own, and what is not baked (instances of node-made geometry,
+particles, metaballs, NURBS surfaces) is named with a reason."""
 import json
 import math
 
@@ -135,65 +136,172 @@ def test_the_layout_follows_a_live_modifier_stack_and_a_textured_material_is_mea
     assert object_fingerprint(bar) == before
 
 
-def _unsupported_and_instanced_scene():
-    """A floor, spheres instanced by Geometry Nodes on a grid, a collection instance, a metaball, a NURBS surface and
-    a curve with no bevel."""
-    chrome = material("chrome", 0.1, metallic=1.0)
-    floor = mesh_object("Floor", cube(4.0), material("tiles", 0.3))
-    floor.scale.z = 0.01
-    sphere = mesh_object("Sphere Source", uv_sphere(0.3), chrome)
-    sphere.hide_render = True
-    grid = mesh_object("Grid", cube(0.1))
-    tree = bpy.data.node_groups.new("Scatter spheres", "GeometryNodeTree")
+def _scatter_tree(name, instance_socket_builder):
+    """A Geometry Nodes tree instancing what `instance_socket_builder(tree)` returns on a 3 x 2 grid of points."""
+    tree = bpy.data.node_groups.new(name, "GeometryNodeTree")
     tree.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
     tree.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
     points = tree.nodes.new("GeometryNodeMeshGrid")
     points.inputs["Vertices X"].default_value, points.inputs["Vertices Y"].default_value = 3, 2
-    info = tree.nodes.new("GeometryNodeObjectInfo")
-    info.inputs["Object"].default_value, info.inputs["As Instance"].default_value = sphere, True
+    points.inputs["Size X"].default_value, points.inputs["Size Y"].default_value = 3.0, 2.0
     instance = tree.nodes.new("GeometryNodeInstanceOnPoints")
     tree.links.new(points.outputs["Mesh"], instance.inputs["Points"])
-    tree.links.new(info.outputs["Geometry"], instance.inputs["Instance"])
+    tree.links.new(instance_socket_builder(tree), instance.inputs["Instance"])
     tree.links.new(instance.outputs["Instances"], tree.nodes.new("NodeGroupOutput").inputs[0])
-    grid.modifiers.new("Scatter", "NODES").node_group = tree
+    return tree
+
+
+def _instances_scene():
+    """A floor; glossy spheres instanced by Geometry Nodes on a grid (their object hidden); a collection instance of
+    a glossy rock whose collection no scene links."""
+    chrome = material("chrome", 0.1, metallic=1.0)
+    floor = mesh_object("Floor", cube(4.0), material("tiles", 0.3))
+    floor.scale.z = 0.01
+    floor.location.z = -0.5
+    sphere = mesh_object("Sphere Source", uv_sphere(0.3), chrome)
+    sphere.hide_render = True
+
+    def object_info(tree):
+        info = tree.nodes.new("GeometryNodeObjectInfo")
+        info.inputs["Object"].default_value, info.inputs["As Instance"].default_value = sphere, True
+        return info.outputs["Geometry"]
+    grid = bpy.data.objects.new("Grid", bpy.data.meshes.new("Grid"))
+    grid.modifiers.new("Scatter", "NODES").node_group = _scatter_tree("Scatter spheres", object_info)
     rocks = bpy.data.collections.new("Rocks")
-    rocks.objects.link(mesh_object("Rock", cube(0.3), chrome))
+    rocks.objects.link(mesh_object("Rock", cube(0.4), chrome))
     empty = bpy.data.objects.new("Rock Instance", None)
     empty.instance_type, empty.instance_collection = "COLLECTION", rocks
+    empty.location = (0.0, 1.6, 0.0)
+    rock = rocks.objects[0]
+    return scene_with(floor, sphere, grid, empty, name="instances test"), sphere, grid, empty, rock
+
+
+def test_every_instance_gets_texels_of_its_own_and_its_shading_finds_them(tmp_path):
+    """Six geometry-node instances and one collection instance: each is in the plan with its texels, gets its own
+    atlas tile whose texels lie on it, and a material reading the atlas UV as the baked copy does (lightmap layer,
+    Instancer attributes) lands inside that instance's tile in Cycles and in EEVEE. Remove SG Bake leaves the
+    instancer, the instanced objects and their meshes as they were."""
+    from blender_addon.apply import _lightmap_uv
+
+    scene, sphere, grid, empty, rock = _instances_scene()
+    owners = [grid, sphere, empty, rock]
+    before = [object_fingerprint(o) for o in owners]
+    plan = build_plan(scene, BakeSettings.from_preset("draft", texel_density=8.0))
+    instances = [o for o in plan.objects if o.instancer]
+    assert [o.name for o in instances] == [f"{grid.name}: {sphere.name} #{k}" for k in range(1, 7)] + [
+        f"{empty.name}: {rock.name} #1"]
+    assert all(o.bake_lightfield and o.texels > 0 for o in instances)
+    assert "each baked with texels of its own" in next(o for o in plan.objects if o.name == grid.name).reason
+    assert not any("not baked" in w for w in plan.warnings), plan.warnings
+    result = capture(scene, plan, tmp_path)
+    atlas, info = read_texel_maps(tmp_path)
+    tiles = {o["name"]: o for o in info["objects"]}
+    centres = []
+    for entry in instances:
+        mine = _texels_of(atlas, info, entry.name)
+        p = channels(atlas, "P.X", 3)[mine]
+        assert mine.sum() > 0 and np.ptp(p, axis=0).max() < 0.9  # one sphere or rock, not several
+        centres.append(p.mean(axis=0))
+    assert len({tuple(np.round(c, 1)) for c in centres}) == len(instances)  # each at a place of its own
+
+    emit = bpy.data.materials.new("atlas uv")
+    tree = emit.node_tree
+    emission = tree.nodes.new("ShaderNodeEmission")
+    tree.links.new(_lightmap_uv(tree), emission.inputs["Color"])
+    tree.links.new(emission.outputs[0], tree.nodes["Material Output"].inputs["Surface"])
+    chrome = sphere.material_slots[0].material
+    for obj in (sphere, rock):
+        obj.material_slots[0].material = emit
+    camera = bpy.data.objects.new("Top", bpy.data.cameras.new("Top"))
+    camera.data.type, camera.data.ortho_scale = "ORTHO", 5.0
+    camera.location = (0.0, 0.3, 5.0)
+    scene.collection.objects.link(camera)
+    scene.camera = camera
+    scene.render.resolution_x = scene.render.resolution_y = 100
+    scene.render.image_settings.file_format, scene.render.image_settings.color_depth = "OPEN_EXR", "32"
+    scene.view_settings.view_transform = "Standard"
+    scene.cycles.samples, scene.cycles.use_denoising = 4, False
+    next(o for o in scene.objects if base_name(o.name) == "Floor").hide_render = True
+    from shaders.exr_io import read_exr
+
+    for engine in ("CYCLES", "BLENDER_EEVEE"):
+        scene.render.engine = engine
+        scene.render.filepath = str(tmp_path / f"atlas_uv_{engine}.exr")
+        with active_scene(scene):
+            bpy.ops.render.render(write_still=True, scene=scene.name)
+        image = read_exr(scene.render.filepath, channels=["R", "G", "B"])[0].astype(np.float64)
+        for entry, centre in zip(instances, centres):
+            column = int(round(50 + 20 * centre[0]))
+            row = int(round(50 - 20 * (centre[1] - 0.3)))
+            u, v = image[row, column, :2]
+            x, y, w, h = tiles[entry.name]["pixel_rect"]
+            tile_u0, tile_v1 = x / result.atlas_width, 1 - y / result.atlas_height
+            assert tile_u0 <= u <= tile_u0 + w / result.atlas_width, (engine, entry.name, u, x, w)
+            assert tile_v1 - h / result.atlas_height <= v <= tile_v1, (engine, entry.name, v, y, h)
+    remove_lightmap_uvs(scene)
+    for obj in (sphere, rock):
+        obj.material_slots[0].material = chrome
+    next(o for o in scene.objects if base_name(o.name) == "Floor").hide_render = False
+    assert [object_fingerprint(o) for o in owners] == before
+
+
+def _unsupported_scene():
+    """Instances of node-made geometry, particle instances, a metaball, a NURBS surface and a curve with no bevel
+    beside a floor."""
+    chrome = material("chrome", 0.1, metallic=1.0)
+    floor = mesh_object("Floor", cube(4.0), material("tiles", 0.3))
+    floor.scale.z = 0.01
+
+    def node_sphere(tree):
+        sphere = tree.nodes.new("GeometryNodeMeshUVSphere")
+        tree.links.new(sphere.outputs["Mesh"], (setter := tree.nodes.new("GeometryNodeSetMaterial")).inputs[0])
+        setter.inputs["Material"].default_value = chrome
+        return setter.outputs[0]
+    grid = bpy.data.objects.new("Node Spheres", bpy.data.meshes.new("Node Spheres"))
+    grid.modifiers.new("Scatter", "NODES").node_group = _scatter_tree("Scatter node spheres", node_sphere)
+    pebble = mesh_object("Pebble", uv_sphere(0.05), chrome)
+    pebble.hide_render = True
+    emitter = mesh_object("Emitter", cube(1.0))
+    emitter.location = (0.0, 0.0, 2.0)
     blob = bpy.data.objects.new("Blob", bpy.data.metaballs.new("Blob"))
     blob.data.elements.new()
     blob.data.materials.append(chrome)
     wire = bpy.data.objects.new("Wire", bpy.data.curves.new("Wire", "CURVE"))
     wire.data.splines.new("POLY").points.add(2)
     wire.data.materials.append(chrome)
-    scene = scene_with(floor, sphere, grid, empty, blob, wire, name="instances test")
+    scene = scene_with(floor, grid, pebble, emitter, blob, wire, name="unsupported test")
+    emitter.modifiers.new("Pebbles", "PARTICLE_SYSTEM")
+    particles = emitter.particle_systems[0].settings
+    particles.count, particles.render_type, particles.instance_object = 20, "OBJECT", pebble
+    particles.frame_start = particles.frame_end = 1  # all born on the first frame
     with bpy.context.temp_override(scene=scene, view_layer=scene.view_layers[0], collection=scene.collection):
         bpy.ops.surface.primitive_nurbs_surface_sphere_add(radius=0.4, location=(1.5, 1.5, 0.5))
     return scene
 
 
-def test_instances_metaballs_surfaces_and_bare_curves_are_named_with_their_reasons():
-    scene = _unsupported_and_instanced_scene()
+def test_what_cannot_be_baked_is_named_with_its_reason():
+    scene = _unsupported_scene()
     plan = build_plan(scene, DRAFT)
     by_name = {base_name(o.name): o for o in plan.objects}
     assert by_name["Floor"].bake_lightfield and by_name["Floor"].texels > 0
-    grid = by_name["Grid"]
-    assert not grid.bake_lightfield and "6 geometry nodes instances of Sphere Source" in grid.reason
-    assert "left to the renderer" in grid.reason
-    rocks = by_name["Rock Instance"]
-    assert "1 collection instance of Rock" in rocks.reason and rocks.geometry == "1 collection instance of Rock"
+    nodes = by_name["Node Spheres"]
+    assert not nodes.bake_lightfield and "6 geometry nodes instances of generated geometry" in nodes.reason
+    assert "left to the renderer" in nodes.reason and "made inside the node tree" in nodes.reason
+    emitter = by_name["Emitter"]
+    assert "20 particle instances of Pebble" in emitter.geometry and "left to the renderer" in emitter.reason
     assert "cannot give a metaball the lightmap UV modifier" in by_name["Blob"].reason
     assert "no surface: a curve without bevel" in by_name["Wire"].reason
     nurbs = next(o for o in plan.objects if scene.objects[o.name].type == "SURFACE")
     assert "NURBS surface" in nurbs.reason
-    assert any("instances of glossy objects are not baked" in w and "Sphere Source" in w for w in plan.warnings)
+    assert any("instances of glossy objects are not baked" in w and "Pebble" in w for w in plan.warnings)
+    assert "Emitter" not in {base_name(o.name) for o in plan.baked_objects}  # no material: left alone
+    assert not any(o.instancer for o in plan.objects)
     decisions = "\n".join(plan.decisions())
-    for name in ("Grid", "Rock Instance", "Blob", "Wire"):
-        assert f"\n{name}" in "\n" + decisions or decisions.startswith(name)
-    floor_only = BakeSettings.from_preset("draft", rough_materials="renderer")
+    for name in ("Node Spheres", "Emitter", "Blob", "Wire"):
+        assert any(line.startswith(name) for line in decisions.splitlines()), name
     next(o for o in scene.objects if base_name(o.name) == "Floor").material_slots[0].material = material("matte", 0.9)
-    with pytest.raises(BakeInputError, match="instances of glossy objects are not baked.*Sphere Source"):
-        build_plan(scene, floor_only)
+    with pytest.raises(BakeInputError, match="instances of glossy objects are not baked.*Pebble"):
+        build_plan(scene, BakeSettings.from_preset("draft", rough_materials="renderer"))
 
 
 def test_a_bake_without_glossy_materials_says_so_instead_of_a_loss():
@@ -212,13 +320,16 @@ def test_the_geometry_demo_bakes_every_class_and_remove_restores_every_object(tm
     from blender_addon.pipeline import BakeJob
 
     scene = build_demo_scene("geometry")
-    before = {o.name: object_fingerprint(o) for o in scene.objects}
+    owners = [*scene.objects, bpy.data.objects["Cup"]]
+    before = {o.name: object_fingerprint(o) for o in owners}
     datablocks = {kind: set(getattr(bpy.data, kind).keys()) for kind in ("objects", "meshes", "node_groups")}
     settings = BakeSettings.from_preset("draft", lightfield_resolution=8, samples=8, sg_count=4, training_budget_s=4.0,
                                         lobe_refit_steps=20)
     job = BakeJob(scene, settings, tmp_path, stages=("capture", "render", "train", "apply"))
     by_name = {base_name(o.name): o for o in job.plan.objects}
-    expected = {"Suzanne": "mesh", "Bar": "mesh + Bevel, Array, Subdivision", "Text": "text", "Pipe": "curve"}
+    expected = {"Suzanne": "mesh", "Bar": "mesh + Bevel, Array, Subdivision", "Text": "text", "Pipe": "curve",
+                "Marble Grid: Marble #1": "geometry nodes instance 1 of 6, of 'Marble' on 'Marble Grid'",
+                "Cup Instance: Cup #1": "collection instance 1 of 1, of 'Cup' on 'Cup Instance'"}
     for name, geometry in expected.items():
         assert by_name[name].bake_lightfield and by_name[name].texels > 0 and by_name[name].geometry == geometry
     job.run()
@@ -228,12 +339,12 @@ def test_the_geometry_demo_bakes_every_class_and_remove_restores_every_object(tm
     eevee = errors["eevee"]
     assert "error" not in eevee and math.isfinite(errors["flip"]) and 0 < eevee["flip"] < 1
     flips = {base_name(k): v["flip"] for k, v in eevee["flip_by_material"].items()}
-    for name in ("Red Plastic", "Steel", "Gold", "Copper"):
+    for name in ("Red Plastic", "Steel", "Gold", "Copper", "Chrome", "Blue Glaze"):
         assert math.isfinite(flips[name]) and 0 <= flips[name] < 1, flips
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["errors"]["eevee"]["flip"] == eevee["flip"]
     remove_bake(scene)
-    assert {o.name: object_fingerprint(o) for o in scene.objects} == before
+    assert {o.name: object_fingerprint(o) for o in owners} == before
     assert {kind: set(getattr(bpy.data, kind).keys()) for kind in datablocks} == datablocks
 
 
