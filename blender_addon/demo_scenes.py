@@ -354,6 +354,16 @@ def _glowing_sign():
     return mat
 
 
+def _area_lamp(scene, energy, location, tilt_y_degrees):
+    """A 1 m area lamp tilted 30 degrees about X and `tilt_y_degrees` about Y."""
+    lamp = bpy.data.objects.new("Area Lamp", bpy.data.lights.new("Area Lamp", type="AREA"))
+    lamp.data.energy, lamp.data.size = energy, 1.0
+    lamp.location = location
+    lamp.rotation_euler = (math.radians(30), math.radians(tilt_y_degrees), 0.0)
+    scene.collection.objects.link(lamp)
+    return lamp
+
+
 def build_materials(scene):
     _mesh_object(scene, "Floor", _plane(6.0, 6.0), _textured_floor())
     _mesh_object(scene, "Painted Sphere", _sphere(0.55), _image_metal(), Matrix.Translation((-1.3, 0.3, 0.55)))
@@ -373,14 +383,37 @@ def build_materials(scene):
     coated = _principled("Car Paint", (0.5, 0.02, 0.02), roughness=0.4)
     coated.node_tree.nodes["Principled BSDF"].inputs["Coat Weight"].default_value = 1.0
     _mesh_object(scene, "Coated Box", _box(0.5, 0.5, 0.5), coated, Matrix.Translation((-2.0, -1.0, 0.25)))
-    lamp_data = bpy.data.lights.new("Area Lamp", type="AREA")
-    lamp_data.energy, lamp_data.size = 250.0, 1.0
-    lamp = bpy.data.objects.new("Area Lamp", lamp_data)
-    lamp.location = (1.5, -1.5, 3.0)
-    lamp.rotation_euler = (math.radians(30), math.radians(20), 0.0)
-    scene.collection.objects.link(lamp)
+    _area_lamp(scene, 250.0, (1.5, -1.5, 3.0), 20.0)
     _world(scene, hdri="interior", strength=0.6)
     _camera(scene, (2.6, -4.4, 2.3), (-0.2, 0.3, 0.4), lens=30.0)
+
+
+def bevel_array_subdivision(obj, bevel_width, spacing, count=4):
+    """A procedural stack real files have: Bevel (2 segments), an Array of `count` copies along X `spacing` object
+    widths apart, Subdivision at level 1 in the viewport and 2 in renders. Returns the modifiers."""
+    bevel = obj.modifiers.new("Bevel", "BEVEL")
+    bevel.width, bevel.segments = bevel_width, 2
+    array = obj.modifiers.new("Array", "ARRAY")
+    array.count, array.relative_offset_displace = count, (spacing, 0.0, 0.0)
+    subdivision = obj.modifiers.new("Subdivision", "SUBSURF")
+    subdivision.levels, subdivision.render_levels = 1, 2
+    return bevel, array, subdivision
+
+
+def instance_on_grid(name, size, instance_socket):
+    """A Geometry Nodes tree instancing what `instance_socket(tree)` returns on a 3 x 2 grid of points `size` (x, y)
+    across: the scatter setups real files have."""
+    tree = bpy.data.node_groups.new(name, "GeometryNodeTree")
+    tree.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    tree.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    points = tree.nodes.new("GeometryNodeMeshGrid")
+    points.inputs["Vertices X"].default_value, points.inputs["Vertices Y"].default_value = 3, 2
+    points.inputs["Size X"].default_value, points.inputs["Size Y"].default_value = size
+    instance = tree.nodes.new("GeometryNodeInstanceOnPoints")
+    tree.links.new(points.outputs["Mesh"], instance.inputs["Points"])
+    tree.links.new(instance_socket(tree), instance.inputs["Instance"])
+    tree.links.new(instance.outputs["Instances"], tree.nodes.new("NodeGroupOutput").inputs[0])
+    return tree
 
 
 def _monkey(bm):
@@ -401,12 +434,7 @@ def build_geometry(scene):
     bar = _mesh_object(scene, "Bar", _box(0.3, 0.3, 0.3), _principled("Steel", (0.7, 0.72, 0.75), roughness=0.2,
                                                                       metallic=1.0),
                        Matrix.Translation((0.2, 0.9, 0.15)))
-    bevel = bar.modifiers.new("Bevel", "BEVEL")
-    bevel.width, bevel.segments = 0.03, 2
-    array = bar.modifiers.new("Array", "ARRAY")
-    array.count, array.relative_offset_displace = 4, (1.3, 0.0, 0.0)
-    subdivision = bar.modifiers.new("Subdivision", "SUBSURF")
-    subdivision.levels, subdivision.render_levels = 1, 2
+    bevel_array_subdivision(bar, bevel_width=0.03, spacing=1.3)
     text_data = bpy.data.curves.new("SG Text", "FONT")
     text_data.body, text_data.extrude, text_data.size = "SG", 0.06, 0.8
     text_data.materials.append(_principled("Gold", (1.0, 0.77, 0.34), roughness=0.25, metallic=1.0))
@@ -427,18 +455,12 @@ def build_geometry(scene):
                                                                              metallic=1.0))
     marble.hide_render = True  # shown only through its instances
     marble.hide_viewport = True
-    scatter = bpy.data.node_groups.new("Marbles on a grid", "GeometryNodeTree")
-    scatter.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
-    scatter.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
-    points = scatter.nodes.new("GeometryNodeMeshGrid")
-    points.inputs["Vertices X"].default_value, points.inputs["Vertices Y"].default_value = 3, 2
-    points.inputs["Size X"].default_value, points.inputs["Size Y"].default_value = 0.8, 0.4
-    source = scatter.nodes.new("GeometryNodeObjectInfo")
-    source.inputs["Object"].default_value, source.inputs["As Instance"].default_value = marble, True
-    instance = scatter.nodes.new("GeometryNodeInstanceOnPoints")
-    scatter.links.new(points.outputs["Mesh"], instance.inputs["Points"])
-    scatter.links.new(source.outputs["Geometry"], instance.inputs["Instance"])
-    scatter.links.new(instance.outputs["Instances"], scatter.nodes.new("NodeGroupOutput").inputs[0])
+
+    def marble_instance(tree):
+        source = tree.nodes.new("GeometryNodeObjectInfo")
+        source.inputs["Object"].default_value, source.inputs["As Instance"].default_value = marble, True
+        return source.outputs["Geometry"]
+    scatter = instance_on_grid("Marbles on a grid", (0.8, 0.4), marble_instance)
     grid = bpy.data.objects.new("Marble Grid", bpy.data.meshes.new("Marble Grid"))
     grid.location = (1.4, -0.9, 0.12)
     grid.modifiers.new("Scatter", "NODES").node_group = scatter
@@ -451,12 +473,7 @@ def build_geometry(scene):
     cup_instance.instance_type, cup_instance.instance_collection = "COLLECTION", cups
     cup_instance.location = (-0.6, 0.9, 0.175)
     scene.collection.objects.link(cup_instance)
-    lamp_data = bpy.data.lights.new("Area Lamp", type="AREA")
-    lamp_data.energy, lamp_data.size = 200.0, 1.0
-    lamp = bpy.data.objects.new("Area Lamp", lamp_data)
-    lamp.location = (1.0, -1.5, 2.5)
-    lamp.rotation_euler = (math.radians(30), math.radians(15), 0.0)
-    scene.collection.objects.link(lamp)
+    _area_lamp(scene, 200.0, (1.0, -1.5, 2.5), 15.0)
     _world(scene, hdri="interior", strength=0.6)
     _camera(scene, (1.9, -3.0, 1.7), (-0.2, 0.0, 0.25), lens=32.0)
 

@@ -216,7 +216,7 @@ def set_instance_tiles(obj, positions, offsets, scales) -> None:
         tiles[OWNED_KEY] = True
         modifier[_input_identifier(modifier, INSTANCE_TILES_INPUT)] = tiles
     else:
-        tiles.data = mesh
+        tiles.data = mesh  # the previous mesh is an orphan (remove_orphans) unless a cancel snapshot holds it
     _reevaluate(obj, modifier)
 
 
@@ -273,13 +273,14 @@ def _reevaluate(obj, modifier) -> None:
     obj.update_tag()
 
 
-def restore_carrier(obj, mesh) -> None:
-    carrier = carrier_of(obj)
-    if carrier is not None and mesh is not None:
-        replaced, carrier.data = carrier.data, mesh
-        if replaced.users == 0:
-            bpy.data.meshes.remove(replaced)
-        _reevaluate(obj, lightmap_modifier(obj))
+def restore_helpers(obj, carrier_mesh, tiles_mesh) -> None:
+    """Put back the carrier and instance-tiles meshes an earlier capture gave `obj`'s modifier (None: keep)."""
+    for helper, mesh in ((carrier_of(obj), carrier_mesh), (instance_tiles_of(obj), tiles_mesh)):
+        if helper is not None and mesh is not None:
+            replaced, helper.data = helper.data, mesh
+            if replaced.users == 0:
+                bpy.data.meshes.remove(replaced)
+    _reevaluate(obj, lightmap_modifier(obj))
 
 
 def detach(obj) -> bool:

@@ -134,12 +134,13 @@ class BakeJob:
         exactly."""
         import numpy as np
 
-        snapshot = {"meshes": {}, "objects": {}, "carriers": {}}
+        snapshot = {"meshes": {}, "objects": {}, "carriers": {}, "instance_tiles": {}}
         for obj in lightmap_owners(self.scene):
-            carrier = lightmap_modifier.carrier_of(obj)
-            if carrier is not None:  # kept alive until the job ends: capture gives the carrier a new mesh
-                carrier.data.use_fake_user = True
-                snapshot["carriers"][obj.name] = carrier.data
+            for kind, helper in (("carriers", lightmap_modifier.carrier_of(obj)),
+                                 ("instance_tiles", lightmap_modifier.instance_tiles_of(obj))):
+                if helper is not None:  # kept alive until the job ends: capture gives the helper a new mesh
+                    helper.data.use_fake_user = True
+                    snapshot[kind][obj.name] = helper.data
             snapshot["objects"][obj.name] = {k: list(obj[k]) for k in (OFFSET_KEY, SCALE_KEY) if k in obj}
             if obj.type != "MESH":
                 continue
@@ -152,7 +153,7 @@ class BakeJob:
 
     def _restore_lightmaps(self):
         snapshot = self._lightmap_snapshot
-        if not snapshot["meshes"] and not snapshot["carriers"]:
+        if not snapshot["meshes"] and not snapshot["carriers"] and not snapshot["instance_tiles"]:
             remove_lightmap_uvs(self.scene)  # nothing was baked before: the scene had no lightmap data at all
             return
         for obj in lightmap_owners(self.scene):
@@ -162,8 +163,9 @@ class BakeJob:
                     obj[key] = saved[key]
                 elif key in obj:
                     del obj[key]
-            if obj.name in snapshot["carriers"]:
-                lightmap_modifier.restore_carrier(obj, snapshot["carriers"][obj.name])
+            if obj.name in snapshot["carriers"] or obj.name in snapshot["instance_tiles"]:
+                lightmap_modifier.restore_helpers(obj, snapshot["carriers"].get(obj.name),
+                                                  snapshot["instance_tiles"].get(obj.name))
             else:
                 lightmap_modifier.detach(obj)  # this job's capture added it
             if obj.type != "MESH":
@@ -229,7 +231,8 @@ class BakeJob:
     def _release_snapshot(self):
         """The previous bake's carrier meshes were held for a cancel; once the job is over they may go."""
         snapshot = getattr(self, "_lightmap_snapshot", None)
-        for mesh in (snapshot or {}).get("carriers", {}).values():
+        snapshot = snapshot or {}
+        for mesh in [*snapshot.get("carriers", {}).values(), *snapshot.get("instance_tiles", {}).values()]:
             try:
                 mesh.use_fake_user = False
             except ReferenceError:

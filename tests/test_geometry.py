@@ -12,6 +12,7 @@ import pytest
 from blender_addon import lightmap_modifier
 from blender_addon.apply import remove_bake
 from blender_addon.capture import LIGHTMAP_LAYER, capture, remove_lightmap_uvs
+from blender_addon.demo_scenes import bevel_array_subdivision, instance_on_grid
 from blender_addon.scene_analysis import active_scene, build_plan, loop_triangle_arrays
 from headless.bake import stage_summary
 from shaders.bake_plan import BakeInputError, BakeSettings
@@ -92,12 +93,7 @@ def test_the_layout_follows_a_live_modifier_stack_and_a_textured_material_is_mea
     tree.links.new(noise.outputs["Fac"], ramp.inputs["Value"])
     tree.links.new(ramp.outputs["Result"], tree.nodes["Principled BSDF"].inputs["Roughness"])
     bar = mesh_object("Bar", cube(0.5), steel)
-    bevel = bar.modifiers.new("Bevel", "BEVEL")
-    bevel.width, bevel.segments = 0.05, 2
-    array = bar.modifiers.new("Array", "ARRAY")
-    array.count, array.relative_offset_displace = 4, (1.5, 0.0, 0.0)
-    subdivision = bar.modifiers.new("Subdivision", "SUBSURF")
-    subdivision.levels, subdivision.render_levels = 1, 2
+    _, _, subdivision = bevel_array_subdivision(bar, bevel_width=0.05, spacing=1.5)
     scene = scene_with(bar)
     before = object_fingerprint(bar)
     plan = build_plan(scene, BakeSettings.from_preset("draft", texel_density=16.0))
@@ -136,21 +132,6 @@ def test_the_layout_follows_a_live_modifier_stack_and_a_textured_material_is_mea
     assert object_fingerprint(bar) == before
 
 
-def _scatter_tree(name, instance_socket_builder):
-    """A Geometry Nodes tree instancing what `instance_socket_builder(tree)` returns on a 3 x 2 grid of points."""
-    tree = bpy.data.node_groups.new(name, "GeometryNodeTree")
-    tree.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
-    tree.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
-    points = tree.nodes.new("GeometryNodeMeshGrid")
-    points.inputs["Vertices X"].default_value, points.inputs["Vertices Y"].default_value = 3, 2
-    points.inputs["Size X"].default_value, points.inputs["Size Y"].default_value = 3.0, 2.0
-    instance = tree.nodes.new("GeometryNodeInstanceOnPoints")
-    tree.links.new(points.outputs["Mesh"], instance.inputs["Points"])
-    tree.links.new(instance_socket_builder(tree), instance.inputs["Instance"])
-    tree.links.new(instance.outputs["Instances"], tree.nodes.new("NodeGroupOutput").inputs[0])
-    return tree
-
-
 def _instances_scene():
     """A floor; glossy spheres instanced by Geometry Nodes on a grid (their object hidden); a collection instance of
     a glossy rock whose collection no scene links."""
@@ -166,7 +147,7 @@ def _instances_scene():
         info.inputs["Object"].default_value, info.inputs["As Instance"].default_value = sphere, True
         return info.outputs["Geometry"]
     grid = bpy.data.objects.new("Grid", bpy.data.meshes.new("Grid"))
-    grid.modifiers.new("Scatter", "NODES").node_group = _scatter_tree("Scatter spheres", object_info)
+    grid.modifiers.new("Scatter", "NODES").node_group = instance_on_grid("Scatter spheres", (3.0, 2.0), object_info)
     rocks = bpy.data.collections.new("Rocks")
     rocks.objects.link(mesh_object("Rock", cube(0.4), chrome))
     empty = bpy.data.objects.new("Rock Instance", None)
@@ -258,7 +239,7 @@ def _unsupported_scene():
         setter.inputs["Material"].default_value = chrome
         return setter.outputs[0]
     grid = bpy.data.objects.new("Node Spheres", bpy.data.meshes.new("Node Spheres"))
-    grid.modifiers.new("Scatter", "NODES").node_group = _scatter_tree("Scatter node spheres", node_sphere)
+    grid.modifiers.new("Scatter", "NODES").node_group = instance_on_grid("Scatter node spheres", (3.0, 2.0), node_sphere)
     pebble = mesh_object("Pebble", uv_sphere(0.05), chrome)
     pebble.hide_render = True
     emitter = mesh_object("Emitter", cube(1.0))
@@ -396,3 +377,51 @@ def test_solidify_boolean_and_geometry_nodes_stacks_get_a_layout_of_their_own(tm
     assert shared / covered <= 0.002, (shared, covered)
     remove_lightmap_uvs(scene)
     assert object_fingerprint(box) == before
+
+
+def _lightmap_state(scene) -> dict:
+    """Per object a capture may change: its tile properties and the data of its modifier's carrier and instance
+    tiles (positions, UVs, tile attributes)."""
+    from blender_addon.capture import TILE_KEYS, lightmap_owners
+
+    state = {}
+    for obj in lightmap_owners(scene):
+        entry = [repr({k: [round(v, 9) for v in obj[k]] for k in TILE_KEYS if k in obj})]
+        for helper in (lightmap_modifier.carrier_of(obj), lightmap_modifier.instance_tiles_of(obj)):
+            if helper is None:
+                entry.append(None)
+                continue
+            values = []
+            for attribute in helper.data.attributes:
+                if attribute.data_type in ("FLOAT_VECTOR", "FLOAT2"):
+                    data = np.empty(len(attribute.data) * (3 if attribute.data_type == "FLOAT_VECTOR" else 2), np.float32)
+                    attribute.data.foreach_get("vector", data)
+                    values.append((attribute.name, data.round(6).tobytes()))
+            entry.append(sorted(values))
+        state[obj.name] = entry
+    return state
+
+
+def test_cancelling_a_rebake_puts_back_the_carriers_and_instance_tiles(tmp_path):
+    """A scene with a modifier stack and geometry-node and collection instances, captured at one density; a second
+    job at another density is cancelled after its capture: every carrier, instance tile and tile property is back."""
+    from blender_addon.pipeline import BakeJob
+
+    scene, *_ = _instances_scene()
+    bar = mesh_object("Bar", cube(0.5), material("steel", 0.3, metallic=1.0))
+    bevel_array_subdivision(bar, bevel_width=0.05, spacing=1.5)
+    bar.location = (0.0, -1.5, 0.0)
+    scene.collection.objects.link(bar)
+    small = dict(lightfield_resolution=8, samples=2, sg_count=2, training_budget_s=1.0)
+    BakeJob(scene, BakeSettings.from_preset("draft", texel_density=4.0, **small), tmp_path / "a",
+            stages=("capture",)).run()
+    captured = _lightmap_state(scene)
+    job = BakeJob(scene, BakeSettings.from_preset("draft", texel_density=9.0, **small), tmp_path / "b",
+                  stages=("capture", "render"))
+    while job.step()[0] != "render":
+        pass
+    assert _lightmap_state(scene) != captured
+    job.cancel()
+    assert _lightmap_state(scene) == captured
+    remove_lightmap_uvs(scene)
+    assert not any(lightmap_modifier.lightmap_modifier(o) for o in scene.objects)
