@@ -153,7 +153,7 @@ def keep_refit_where_better(trained: tuple, refitted: tuple, before: dict, after
     material name -> error; with a tolerance > 1, where they raise it less than that factor), the trained ones
     elsewhere: (values, [materials kept], {material: error the refit had}); values are tuples of (T, ...) arrays.
     Where the GGX lobe is about a light-field pixel wide, a refit can fit the target's flaws (with the pixel-centre
-    target it had before stop 42, Production spheres, R = 32: roughness 0.3 went 0.29 -> 0.34 on held-out views,
+    target it had before the pixel-integrated one (docs §28), Production spheres, R = 32: roughness 0.3 went 0.29 -> 0.34 on held-out views,
     FLIP 0.077 -> 0.092)."""
     material_ids = texel_material_ids(atlas, texels)
     result = tuple(np.array(value, copy=True) for value in trained)
@@ -175,7 +175,7 @@ def keep_refit_where_better(trained: tuple, refitted: tuple, before: dict, after
 def revert_where_worse_between_texels(trained, current, kept: list, between: dict, images, normals, axis,
                                       sharpness, atlas, texel_info: dict, texels, roughness):
     """The amplitude refit is kept per material on the texels' own error (keep_refit_where_better); a lobe the
-    views hardly see can still grow where the bilinear lookup blends normals (stop 33, before the ridge floor:
+    views hardly see can still grow where the bilinear lookup blends normals (docs §19, before the ridge floor:
     an amplitude 1.02 -> 1317, error between texels 0.34 (the CNN's) -> 34.2 while the texels' own error fell).
     Per kept material, the trained amplitudes `trained` come back where `current` has a higher error between
     texels (`between`: material -> that error with `current`). Returns (amplitudes, still kept, {material: the
