@@ -34,12 +34,12 @@ try:  # inside the installed extension the numpy side is a sibling package
                                    sg_texture_path)
     from ..shaders.texel_maps import channels, read_texel_maps, smooth_over_texels, texels_of_objects
     from . import lightmap_modifier
-    from .capture import LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, remove_lightmap_uvs
+    from .capture import BLOCK_KEY, LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, remove_lightmap_uvs
     from .surface_shaders import (COPY_KEY, COPY_SUFFIX, LeafInputs, copy_material, remove_unused_group_copies,
                                   rewrite_surface)
 except ImportError:  # bpy as a module with the repository on sys.path
     from blender_addon import lightmap_modifier
-    from blender_addon.capture import LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, remove_lightmap_uvs
+    from blender_addon.capture import BLOCK_KEY, LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, remove_lightmap_uvs
     from blender_addon.surface_shaders import (COPY_KEY, COPY_SUFFIX, LeafInputs, copy_material,
                                                remove_unused_group_copies, rewrite_surface)
     from shaders.bake_plan import BakeInputError
@@ -166,21 +166,26 @@ def _load_image(path: Path, pack: bool):
 
 def _lightmap_uv(tree):
     """Nodes in `tree` giving the atlas UV of the shaded point: the lightmap layer placed in the tile of the object
-    or instance (Instancer attributes: an instance's own tile, else the object's)."""
+    or instance. Instancer attributes: a geometry-node instance's own tile, else the object's; plus, for a member of
+    a collection instance, where the empty's block of tiles is (capture.BLOCK_KEY; 0 elsewhere)."""
     uv = tree.nodes.new("ShaderNodeUVMap")
     uv.uv_map = LIGHTMAP_LAYER
-    offset = tree.nodes.new("ShaderNodeAttribute")
-    offset.attribute_type, offset.attribute_name = "INSTANCER", OFFSET_KEY
-    scale = tree.nodes.new("ShaderNodeAttribute")
-    scale.attribute_type, scale.attribute_name = "INSTANCER", SCALE_KEY
+    offset, scale, block = (tree.nodes.new("ShaderNodeAttribute") for _ in range(3))
+    for node, key in ((offset, OFFSET_KEY), (scale, SCALE_KEY), (block, BLOCK_KEY)):
+        node.attribute_type, node.attribute_name = "INSTANCER", key
+    in_tile = tree.nodes.new("ShaderNodeVectorMath")
+    in_tile.operation = "MULTIPLY_ADD"
+    tree.links.new(uv.outputs["UV"], in_tile.inputs[0])
+    tree.links.new(scale.outputs["Vector"], in_tile.inputs[1])
+    tree.links.new(offset.outputs["Vector"], in_tile.inputs[2])
     atlas_uv = tree.nodes.new("ShaderNodeVectorMath")
-    atlas_uv.operation = "MULTIPLY_ADD"
-    tree.links.new(uv.outputs["UV"], atlas_uv.inputs[0])
-    tree.links.new(scale.outputs["Vector"], atlas_uv.inputs[1])
-    tree.links.new(offset.outputs["Vector"], atlas_uv.inputs[2])
-    left = min((n.location.x for n in tree.nodes if n not in (uv, offset, scale, atlas_uv)), default=0.0)
-    for i, node in enumerate((uv, scale, offset, atlas_uv)):
-        node.location, node.hide = (left - 900 + 220 * i, 400), True
+    atlas_uv.operation = "ADD"
+    tree.links.new(in_tile.outputs["Vector"], atlas_uv.inputs[0])
+    tree.links.new(block.outputs["Vector"], atlas_uv.inputs[1])
+    made = (uv, scale, offset, in_tile, block, atlas_uv)
+    left = min((n.location.x for n in tree.nodes if n not in made), default=0.0)
+    for i, node in enumerate(made):
+        node.location, node.hide = (left - 1100 + 200 * i, 400), True
     return atlas_uv.outputs["Vector"]
 
 
@@ -298,7 +303,7 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
     for object_plan in plan.baked_objects:
         obj = bpy.data.objects[object_plan.source] if object_plan.instancer else scene.objects[object_plan.name]
         holder = scene.objects[object_plan.instancer] if object_plan.instancer else obj  # where its tile is
-        if OFFSET_KEY not in holder and lightmap_modifier.instance_tiles_of(holder) is None:
+        if OFFSET_KEY not in holder and BLOCK_KEY not in holder and lightmap_modifier.instance_tiles_of(holder) is None:
             raise BakeInputError(f"'{object_plan.name}': not captured (no lightmap tile); run the capture stage first")
         if obj.name in switched:  # another instance of the same object: its slots are switched already
             continue

@@ -7,8 +7,9 @@ What it changes in the scene (``remove_lightmap_uvs`` takes all of it away again
   same layer from a last, removable ``SG Lightmap UV`` modifier (lightmap_modifier), so its stack stays live;
 - every baked object gets its tile of the shared atlas as two custom properties (sglf_lightmap_offset and
   sglf_lightmap_scale: atlas_uv = offset + uv * scale), so duplicates get texels of their own;
-- every instance gets a tile of its own too: a collection instance on its empty's properties, a geometry-node
-  instance as instance attributes that the SG Lightmap UV modifier on its instancer writes.
+- every instance gets a tile of its own too: a collection's objects are packed once into a block of tiles that
+  each instancing empty gets a copy of (``sglf_lightmap_block`` on the empty: where its block is); a geometry-node
+  instance's tile is a pair of instance attributes that the SG Lightmap UV modifier on its instancer writes.
 Geometry is captured as a render evaluates it (modifiers shown for rendering, subdivision at render levels).
 
 What it writes to the bake directory:
@@ -66,7 +67,9 @@ OWNER_KEY = "sglf_lightmap_layer"  # on a mesh: the name of the UV layer SG Ligh
 # On an object: its tile in the atlas as atlas_uv = offset + lightmap_uv * scale (two 3-float properties,
 # so a shader's Object Attribute node reads each as a plain vector).
 OFFSET_KEY, SCALE_KEY = "sglf_lightmap_offset", "sglf_lightmap_scale"
-TILE_KEYS = (OFFSET_KEY, SCALE_KEY)
+# On a collection-instancing empty: where its copy of the collection's block of tiles is, from the first block.
+BLOCK_KEY = "sglf_lightmap_block"
+TILE_KEYS = (OFFSET_KEY, SCALE_KEY, BLOCK_KEY)
 TEXEL_SCALE_KEY = "sglf_texel_scale"  # on an object: multiplier of the scene's texel density
 MAX_UV_LAYERS = 8  # Blender's limit per mesh
 UV_PADDING = 2  # texels between charts (bilinear filtering needs >= 1 after instance scaling)
@@ -358,30 +361,80 @@ def _plan_layout(targets, settings, lightmap_uv_layer, warnings):
             for target, size in zip(users, sizes):
                 layouts[target.name] = (LIGHTMAP_LAYER, size)
         lightmap_modifier.remove_orphans()
-    sizes = [layouts[t.name][1] for t in targets]
-    try:
-        positions, atlas_w, atlas_h = shelf_pack(sizes, border=1, max_side=MAX_ATLAS_SIDE)
-    except ValueError as exc:
-        raise BakeInputError(f"the lightmap atlas is too large ({exc}); lower the texel density") from exc
+    pixel_rects, atlas_w, atlas_h, blocks = _pack(targets, {name: size for name, (_, size) in layouts.items()})
     tiles = []
-    for i, (target, (x, y), (w, h)) in enumerate(zip(targets, positions, sizes)):
+    for i, target in enumerate(targets):
+        x, y, w, h = pixel_rects[target.name]
         rect = (x / atlas_w, (atlas_h - y - h) / atlas_h, w / atlas_w, h / atlas_h)
         tiles.append(ObjectTile(i + 1, target.name, target.obj.data.name, layouts[target.name][0], rect, (x, y, w, h)))
-    return tiles, atlas_w, atlas_h
+    return tiles, atlas_w, atlas_h, blocks
 
 
-def _store_tiles(targets, tiles) -> None:
-    """Each target's atlas tile where its baked material finds it (an Instancer attribute): an object's own custom
-    properties; a collection instance's empty; a geometry-node instance's instance attributes, written by the SG
+def _pack(targets, sizes):
+    """Atlas places of every target's tile. The members of a collection instance are packed once into a block, and
+    each instancing empty gets a copy of that block, so one tile per member, relative to its block, serves every
+    instance (the member's own properties hold it; the empty holds where its block is). The first block serves the
+    members that the scene also shows directly. Returns ({target name: (x, y, w, h)}, atlas width, height,
+    {empty name: (dx, dy) of its block from the first block, in texels})."""
+    collections: dict = {}  # collection -> {"members": {object: tile size}, "empties": [empty]}
+    for target in targets:
+        if target.instancer is not None and target.instancer.type == "EMPTY":
+            group = collections.setdefault(target.instancer.instance_collection, {"members": {}, "empties": []})
+            w, h = sizes[target.name]
+            old = group["members"].get(target.obj, (0, 0))
+            group["members"][target.obj] = (max(old[0], w), max(old[1], h))
+            if target.instancer not in group["empties"]:
+                group["empties"].append(target.instancer)
+    member_of = {obj: group for group in collections.values() for obj in group["members"]}
+    for group in collections.values():
+        members = list(group["members"])
+        positions, bw, bh = shelf_pack([group["members"][m] for m in members], border=1, max_side=MAX_ATLAS_SIDE)
+        group["relative"] = dict(zip(members, positions))
+        group["size"] = (bw, bh)
+    # a member shown directly lives in the first block
+    items = [t.name for t in targets if t.obj not in member_of or t.instancer is not None and t.instancer.type != "EMPTY"]
+    block_items = [(group_key, index) for group_key, group in enumerate(collections.values())
+                   for index in range(len(group["empties"]))]
+    groups = list(collections.values())
+    pack_sizes = [sizes[name] for name in items] + [groups[g]["size"] for g, _ in block_items]
+    try:
+        positions, atlas_w, atlas_h = shelf_pack(pack_sizes, border=1, max_side=MAX_ATLAS_SIDE)
+    except ValueError as exc:
+        raise BakeInputError(f"the lightmap atlas is too large ({exc}); lower the texel density") from exc
+    rects = {name: (*positions[k], *sizes[name]) for k, name in enumerate(items)}
+    block_at, blocks = {}, {}
+    for (g, index), (x, y) in zip(block_items, positions[len(items):]):
+        empty = groups[g]["empties"][index]
+        block_at[empty.name] = (x, y)
+        first = block_at.setdefault(("first", g), (x, y))
+        blocks[empty.name] = (x - first[0], y - first[1])
+    group_index = {id(group): g for g, group in enumerate(groups)}
+    for target in targets:
+        group = member_of.get(target.obj)
+        if target.name in rects or group is None:
+            continue
+        g = group_index[id(group)]
+        bx, by = block_at[target.instancer.name] if target.instancer is not None else block_at[("first", g)]
+        rx, ry = group["relative"][target.obj]
+        rects[target.name] = (bx + rx, by + ry, *group["members"][target.obj])
+    return rects, atlas_w, atlas_h, blocks
+
+
+def _store_tiles(targets, tiles, blocks, atlas_w, atlas_h) -> None:
+    """Each target's atlas tile where its baked material finds it (Instancer attributes, which fall back to the
+    object's own): an object's custom properties; a collection member's properties (its tile in its collection's
+    first block) plus the empty's block offset; a geometry-node instance's instance attributes, written by the SG
     Lightmap UV modifier on its instancer."""
     by_instancer: dict = {}
     for target, tile in zip(targets, tiles):
         u0, v0, su, sv = tile.rect
         offset, scale = [u0, v0, 0.0], [su, sv, 1.0]
-        if target.instancer is None:
+        if target.instancer is None or target.instancer.type == "EMPTY":
+            if target.instancer is not None:  # the member's tile in the first block
+                dx, dy = blocks[target.instancer.name]
+                offset = [u0 - dx / atlas_w, v0 + dy / atlas_h, 0.0]
+                target.instancer[BLOCK_KEY] = [dx / atlas_w, -dy / atlas_h, 0.0]
             target.obj[OFFSET_KEY], target.obj[SCALE_KEY] = offset, scale
-        elif target.instancer.type == "EMPTY":
-            target.instancer[OFFSET_KEY], target.instancer[SCALE_KEY] = offset, scale
         else:
             local = target.instancer.matrix_world.inverted() @ target.matrix.translation
             by_instancer.setdefault(target.instancer, []).append((tuple(local), offset, scale))
@@ -578,8 +631,8 @@ def capture(scene, plan, out_dir, *, lightmap_uv_layer: str = "", progress=_noop
         targets = bake_targets(scene, plan.baked_objects, depsgraph)
     objects = list(dict.fromkeys(t.obj for t in targets))
     with active_scene(scene), render_evaluation(objects):
-        tiles, atlas_w, atlas_h = _plan_layout(targets, plan.settings, lightmap_uv_layer, warnings)
-        _store_tiles(targets, tiles)
+        tiles, atlas_w, atlas_h, blocks = _plan_layout(targets, plan.settings, lightmap_uv_layer, warnings)
+        _store_tiles(targets, tiles, blocks, atlas_w, atlas_h)
         depsgraph = bpy.context.evaluated_depsgraph_get()
         depsgraph.update()
         materials = _material_table(objects, plan)

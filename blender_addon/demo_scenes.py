@@ -423,8 +423,8 @@ def _monkey(bm):
 def build_geometry(scene):
     """What real scenes are built from, each glossy: a smooth-shaded monkey primitive (its quads split across
     lightmap charts), a bar whose Bevel + Array + Subdivision stack stays live, an extruded text, a bevelled curve
-    spheres instanced on a grid by Geometry Nodes and a collection instance of a cup, on a counter under an area lamp
-    and a shipped HDRI."""
+    spheres instanced on a grid by Geometry Nodes and two instances of a collection of a cup and saucer, on a counter
+    under an area lamp and a shipped HDRI."""
     _mesh_object(scene, "Counter", _box(5.0, 3.0, 0.2), _principled("Counter Top", (0.55, 0.5, 0.45), roughness=0.35),
                  Matrix.Translation((0.0, 0.0, -0.1)))
     monkey = _mesh_object(scene, "Suzanne", _monkey, _principled("Red Plastic", (0.6, 0.05, 0.04), roughness=0.25),
@@ -465,14 +465,17 @@ def build_geometry(scene):
     grid.location = (1.4, -0.9, 0.12)
     grid.modifiers.new("Scatter", "NODES").node_group = scatter
     scene.collection.objects.link(grid)
-    cups = bpy.data.collections.new("Cup")  # linked to no scene: seen only through its instance
-    cup = _mesh_object(scene, "Cup", _box(0.25, 0.25, 0.35), _principled("Blue Glaze", (0.1, 0.2, 0.7), roughness=0.2))
-    scene.collection.objects.unlink(cup)
-    cups.objects.link(cup)
-    cup_instance = bpy.data.objects.new("Cup Instance", None)
-    cup_instance.instance_type, cup_instance.instance_collection = "COLLECTION", cups
-    cup_instance.location = (-0.6, 0.9, 0.175)
-    scene.collection.objects.link(cup_instance)
+    cups = bpy.data.collections.new("Cup and Saucer")  # linked to no scene: seen only through its instances
+    glaze = _principled("Blue Glaze", (0.1, 0.2, 0.7), roughness=0.2)
+    for name, build, height in (("Cup", _box(0.25, 0.25, 0.35), 0.205), ("Saucer", _box(0.45, 0.45, 0.03), 0.015)):
+        part = _mesh_object(scene, name, build, glaze, Matrix.Translation((0.0, 0.0, height)))
+        scene.collection.objects.unlink(part)
+        cups.objects.link(part)
+    for k, location in enumerate(((-0.6, 0.9, 0.0), (-1.9, 0.6, 0.0))):
+        cup_instance = bpy.data.objects.new(f"Cup Instance {k + 1}", None)
+        cup_instance.instance_type, cup_instance.instance_collection = "COLLECTION", cups
+        cup_instance.location = location
+        scene.collection.objects.link(cup_instance)
     _area_lamp(scene, 200.0, (1.0, -1.5, 2.5), 15.0)
     _world(scene, hdri="interior", strength=0.6)
     _camera(scene, (1.9, -3.0, 1.7), (-0.2, 0.0, 0.25), lens=32.0)

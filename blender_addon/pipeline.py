@@ -23,14 +23,13 @@ try:  # inside the installed extension the numpy side is a sibling package
     from ..shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
     from . import apply as apply_module
     from . import lightmap_modifier
-    from .capture import LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, capture, lightmap_owners, remove_lightmap_uvs
+    from .capture import LIGHTMAP_LAYER, TILE_KEYS, capture, lightmap_owners, remove_lightmap_uvs
     from .render import render_steps
     from .scene_analysis import build_plan
 except ImportError:  # bpy as a module with the repository on sys.path
     from blender_addon import apply as apply_module
     from blender_addon import lightmap_modifier
-    from blender_addon.capture import (LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, capture, lightmap_owners,
-                                        remove_lightmap_uvs)
+    from blender_addon.capture import LIGHTMAP_LAYER, TILE_KEYS, capture, lightmap_owners, remove_lightmap_uvs
     from blender_addon.render import render_steps
     from blender_addon.scene_analysis import build_plan
     from shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
@@ -141,7 +140,7 @@ class BakeJob:
                 if helper is not None:  # kept alive until the job ends: capture gives the helper a new mesh
                     helper.data.use_fake_user = True
                     snapshot[kind][obj.name] = helper.data
-            snapshot["objects"][obj.name] = {k: list(obj[k]) for k in (OFFSET_KEY, SCALE_KEY) if k in obj}
+            snapshot["objects"][obj.name] = {k: list(obj[k]) for k in TILE_KEYS if k in obj}
             if obj.type != "MESH":
                 continue
             layer = obj.data.uv_layers.get(LIGHTMAP_LAYER)
@@ -158,7 +157,7 @@ class BakeJob:
             return
         for obj in lightmap_owners(self.scene):
             saved = snapshot["objects"].get(obj.name, {})
-            for key in (OFFSET_KEY, SCALE_KEY):
+            for key in TILE_KEYS:
                 if key in saved:
                     obj[key] = saved[key]
                 elif key in obj:

@@ -188,8 +188,6 @@ class Instanced:
             return f"{self.how} instances carry no attribute of their own for the baked material to find its texels by"
         if self.nested:
             return "instances nested inside instances share one attribute, not one lightmap tile each"
-        if self.how == "collection" and len(self.sources) > 1:
-            return "a collection instance of several objects gives them one attribute, not one lightmap tile each"
         return ""
 
     def reason(self) -> str:

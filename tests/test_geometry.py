@@ -133,8 +133,8 @@ def test_the_layout_follows_a_live_modifier_stack_and_a_textured_material_is_mea
 
 
 def _instances_scene():
-    """A floor; glossy spheres instanced by Geometry Nodes on a grid (their object hidden); a collection instance of
-    a glossy rock whose collection no scene links."""
+    """A floor; glossy spheres instanced by Geometry Nodes on a grid (their object hidden); two instances of a
+    collection of a glossy rock and stone that no scene links."""
     chrome = material("chrome", 0.1, metallic=1.0)
     floor = mesh_object("Floor", cube(4.0), material("tiles", 0.3))
     floor.scale.z = 0.01
@@ -148,29 +148,37 @@ def _instances_scene():
         return info.outputs["Geometry"]
     grid = bpy.data.objects.new("Grid", bpy.data.meshes.new("Grid"))
     grid.modifiers.new("Scatter", "NODES").node_group = instance_on_grid("Scatter spheres", (3.0, 2.0), object_info)
-    rocks = bpy.data.collections.new("Rocks")
-    rocks.objects.link(mesh_object("Rock", cube(0.4), chrome))
-    empty = bpy.data.objects.new("Rock Instance", None)
-    empty.instance_type, empty.instance_collection = "COLLECTION", rocks
-    empty.location = (0.0, 1.6, 0.0)
-    rock = rocks.objects[0]
-    return scene_with(floor, sphere, grid, empty, name="instances test"), sphere, grid, empty, rock
+    rocks = bpy.data.collections.new("Rocks")  # two objects, instanced twice
+    rock, stone = mesh_object("Rock", cube(0.4), chrome), mesh_object("Stone", uv_sphere(0.2), chrome)
+    stone.location = (0.5, 0.0, 0.0)
+    rocks.objects.link(rock)
+    rocks.objects.link(stone)
+    empties = []
+    for k, x in enumerate((-1.0, 0.8)):
+        empty = bpy.data.objects.new(f"Rock Instance {k + 1}", None)
+        empty.instance_type, empty.instance_collection = "COLLECTION", rocks
+        empty.location = (x, 1.6, 0.0)
+        empties.append(empty)
+    return scene_with(floor, sphere, grid, *empties, name="instances test"), sphere, grid, empties, (rock, stone)
 
 
 def test_every_instance_gets_texels_of_its_own_and_its_shading_finds_them(tmp_path):
-    """Six geometry-node instances and one collection instance: each is in the plan with its texels, gets its own
-    atlas tile whose texels lie on it, and a material reading the atlas UV as the baked copy does (lightmap layer,
-    Instancer attributes) lands inside that instance's tile in Cycles and in EEVEE. Remove SG Bake leaves the
-    instancer, the instanced objects and their meshes as they were."""
+    """Six geometry-node instances and two instances of a collection of two objects: each instance is in the plan with
+    its texels, gets its own atlas tile whose texels lie on it, and a material reading the atlas UV as the baked copy
+    does (lightmap layer, Instancer attributes) lands inside that instance's tile in Cycles and in EEVEE. Remove SG
+    Bake leaves the instancers, the instanced objects and their meshes as they were."""
     from blender_addon.apply import _lightmap_uv
 
-    scene, sphere, grid, empty, rock = _instances_scene()
-    owners = [grid, sphere, empty, rock]
+    scene, sphere, grid, empties, members = _instances_scene()
+    owners = [grid, sphere, *empties, *members]
     before = [object_fingerprint(o) for o in owners]
     plan = build_plan(scene, BakeSettings.from_preset("draft", texel_density=8.0))
     instances = [o for o in plan.objects if o.instancer]
-    assert [o.name for o in instances] == [f"{grid.name}: {sphere.name} #{k}" for k in range(1, 7)] + [
-        f"{empty.name}: {rock.name} #1"]
+    assert [o.name for o in instances if o.instancer == grid.name] == [f"{grid.name}: {sphere.name} #{k}"
+                                                                       for k in range(1, 7)]
+    for empty in empties:
+        mine = [o for o in instances if o.instancer == empty.name]
+        assert sorted(o.source for o in mine) == sorted(m.name for m in members), mine
     assert all(o.bake_lightfield and o.texels > 0 for o in instances)
     assert "each baked with texels of its own" in next(o for o in plan.objects if o.name == grid.name).reason
     assert not any("not baked" in w for w in plan.warnings), plan.warnings
@@ -191,7 +199,7 @@ def test_every_instance_gets_texels_of_its_own_and_its_shading_finds_them(tmp_pa
     tree.links.new(_lightmap_uv(tree), emission.inputs["Color"])
     tree.links.new(emission.outputs[0], tree.nodes["Material Output"].inputs["Surface"])
     chrome = sphere.material_slots[0].material
-    for obj in (sphere, rock):
+    for obj in (sphere, *members):
         obj.material_slots[0].material = emit
     camera = bpy.data.objects.new("Top", bpy.data.cameras.new("Top"))
     camera.data.type, camera.data.ortho_scale = "ORTHO", 5.0
@@ -220,7 +228,7 @@ def test_every_instance_gets_texels_of_its_own_and_its_shading_finds_them(tmp_pa
             assert tile_u0 <= u <= tile_u0 + w / result.atlas_width, (engine, entry.name, u, x, w)
             assert tile_v1 - h / result.atlas_height <= v <= tile_v1, (engine, entry.name, v, y, h)
     remove_lightmap_uvs(scene)
-    for obj in (sphere, rock):
+    for obj in (sphere, *members):
         obj.material_slots[0].material = chrome
     next(o for o in scene.objects if base_name(o.name) == "Floor").hide_render = False
     assert [object_fingerprint(o) for o in owners] == before
@@ -301,7 +309,7 @@ def test_the_geometry_demo_bakes_every_class_and_remove_restores_every_object(tm
     from blender_addon.pipeline import BakeJob
 
     scene = build_demo_scene("geometry")
-    owners = [*scene.objects, bpy.data.objects["Cup"]]
+    owners = [*scene.objects, *(o for o in bpy.data.objects if base_name(o.name) in ("Cup", "Saucer"))]
     before = {o.name: object_fingerprint(o) for o in owners}
     datablocks = {kind: set(getattr(bpy.data, kind).keys()) for kind in ("objects", "meshes", "node_groups")}
     settings = BakeSettings.from_preset("draft", lightfield_resolution=8, samples=8, sg_count=4, training_budget_s=4.0,
@@ -309,8 +317,10 @@ def test_the_geometry_demo_bakes_every_class_and_remove_restores_every_object(tm
     job = BakeJob(scene, settings, tmp_path, stages=("capture", "render", "train", "apply"))
     by_name = {base_name(o.name): o for o in job.plan.objects}
     expected = {"Suzanne": "mesh", "Bar": "mesh + Bevel, Array, Subdivision", "Text": "text", "Pipe": "curve",
-                "Marble Grid: Marble #1": "geometry nodes instance 1 of 6, of 'Marble' on 'Marble Grid'",
-                "Cup Instance: Cup #1": "collection instance 1 of 1, of 'Cup' on 'Cup Instance'"}
+                "Marble Grid: Marble #1": "geometry nodes instance 1 of 6, of 'Marble' on 'Marble Grid'"}
+    cups = [o for o in job.plan.objects if base_name(o.instancer).startswith("Cup Instance")]
+    assert sorted(base_name(o.source) for o in cups) == ["Cup", "Cup", "Saucer", "Saucer"]
+    assert all(o.bake_lightfield and o.texels > 0 for o in cups)
     for name, geometry in expected.items():
         assert by_name[name].bake_lightfield and by_name[name].texels > 0 and by_name[name].geometry == geometry
     job.run()
