@@ -20,40 +20,22 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-try:  # inside the installed extension the numpy side is a sibling package
-    from ..shaders.bake_plan import BakeInputError
-    from ..shaders.bake_report import update_report
-    from ..shaders.exr_io import write_exr
-    from ..shaders.lightfield_tiles import read_images
-    from ..shaders.node_group import (GROUP_NAME, UNIFORM_BLOCK_LIMIT, VERSION_KEY, SGTextureLayout, build_node_group,
-                                      eevee_uniform_bytes, flattened_node_count, material_output)
-    from ..shaders.octahedral import pixel_directions, pixel_solid_angles
-    from ..shaders.sg_math import CLAMPED_COSINE_LEGENDRE, sg_irradiance
-    from ..shaders.sg_shading import SH_L2_BAND, NumpyOps, encode_sharpness, sh_l2_basis
-    from ..shaders.sg_textures import (is_sh_texture, pack_tiles, read_sg_texture, read_sh_texture, scatter_dilated,
-                                   sg_texture_path)
-    from ..shaders.texel_maps import channels, read_texel_maps, smooth_over_texels, texels_of_objects
-    from . import lightmap_modifier
-    from .capture import BLOCK_KEY, LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, remove_lightmap_uvs
-    from .surface_shaders import (COPY_KEY, COPY_SUFFIX, LeafInputs, copy_material, remove_unused_group_copies,
-                                  rewrite_surface)
-except ImportError:  # bpy as a module with the repository on sys.path
-    from blender_addon import lightmap_modifier
-    from blender_addon.capture import BLOCK_KEY, LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, remove_lightmap_uvs
-    from blender_addon.surface_shaders import (COPY_KEY, COPY_SUFFIX, LeafInputs, copy_material,
-                                               remove_unused_group_copies, rewrite_surface)
-    from shaders.bake_plan import BakeInputError
-    from shaders.bake_report import update_report
-    from shaders.exr_io import write_exr
-    from shaders.lightfield_tiles import read_images
-    from shaders.node_group import (GROUP_NAME, UNIFORM_BLOCK_LIMIT, VERSION_KEY, SGTextureLayout, build_node_group,
-                                    eevee_uniform_bytes, flattened_node_count, material_output)
-    from shaders.octahedral import pixel_directions, pixel_solid_angles
-    from shaders.sg_math import CLAMPED_COSINE_LEGENDRE, sg_irradiance
-    from shaders.sg_shading import SH_L2_BAND, NumpyOps, encode_sharpness, sh_l2_basis
-    from shaders.sg_textures import (is_sh_texture, pack_tiles, read_sg_texture, read_sh_texture, scatter_dilated,
-                                   sg_texture_path)
-    from shaders.texel_maps import channels, read_texel_maps, smooth_over_texels, texels_of_objects
+from ..shaders.bake_plan import BakeInputError
+from ..shaders.bake_report import update_report
+from ..shaders.exr_io import write_exr
+from ..shaders.lightfield_tiles import read_images
+from ..shaders.node_group import (GROUP_NAME, UNIFORM_BLOCK_LIMIT, VERSION_KEY, SGTextureLayout, build_node_group,
+                                  eevee_uniform_bytes, flattened_node_count, material_output)
+from ..shaders.octahedral import pixel_directions, pixel_solid_angles
+from ..shaders.sg_math import CLAMPED_COSINE_LEGENDRE, sg_irradiance
+from ..shaders.sg_shading import SH_L2_BAND, NumpyOps, encode_sharpness, sh_l2_basis
+from ..shaders.sg_textures import (is_sh_texture, pack_tiles, read_sg_texture, read_sh_texture, scatter_dilated,
+                               sg_texture_path)
+from ..shaders.texel_maps import channels, read_texel_maps, smooth_over_texels, texels_of_objects
+from . import lightmap_modifier
+from .capture import BLOCK_KEY, LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, remove_lightmap_uvs
+from .surface_shaders import (COPY_KEY, COPY_SUFFIX, LeafInputs, copy_material, remove_unused_group_copies,
+                              rewrite_surface)
 
 BAKE_RECORD_KEY = "sglf_bake"  # on the scene: JSON {object: {slot index: original material}}
 FAKE_USER_KEY = "sglf_fake_user_set"  # on an original: we set its fake user (and clear it again)

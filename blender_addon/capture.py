@@ -35,32 +35,18 @@ import numpy as np
 from mathutils import Vector
 from mathutils.bvhtree import BVHTree
 
-try:  # inside the installed extension the numpy side is a sibling package
-    from ..shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
-    from ..shaders.bake_report import update_report
-    from ..shaders.exr_io import write_exr
-    from ..shaders.texel_maps import (CAPTURE_PICTURES, CHANNEL, FLAG_BURIED, FLAG_CENTRE_INSIDE, FLAG_COVERED,
-                                      FLAG_GUTTER, FLAG_PUSHED_OUT, TEXEL_CHANNELS, TEXELS_FILE, TEXELS_JSON,
-                                      save_capture_pictures)
-    from ..shaders.texel_raster import centre_overlap_count, dilate, rasterize, shelf_pack, signed_areas
-    from .scene_analysis import (active_scene, bake_targets, loop_triangle_arrays, principled_surface,
-                                 transform_points, triangle_areas, unbaked)
-    from . import lightmap_modifier
-    from .lightmap_modifier import user_modifiers
-    from .surface_probe import measure_surfaces
-except ImportError:  # bpy as a module with the repository on sys.path
-    from blender_addon import lightmap_modifier
-    from blender_addon.lightmap_modifier import user_modifiers
-    from blender_addon.surface_probe import measure_surfaces
-    from blender_addon.scene_analysis import (active_scene, bake_targets, loop_triangle_arrays, principled_surface,
-                                              transform_points, triangle_areas, unbaked)
-    from shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
-    from shaders.bake_report import update_report
-    from shaders.exr_io import write_exr
-    from shaders.texel_maps import (CAPTURE_PICTURES, CHANNEL, FLAG_BURIED, FLAG_CENTRE_INSIDE, FLAG_COVERED,
-                                    FLAG_GUTTER, FLAG_PUSHED_OUT, TEXEL_CHANNELS, TEXELS_FILE, TEXELS_JSON,
-                                    save_capture_pictures)
-    from shaders.texel_raster import centre_overlap_count, dilate, rasterize, shelf_pack, signed_areas
+from ..shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
+from ..shaders.bake_report import update_report
+from ..shaders.exr_io import write_exr
+from ..shaders.texel_maps import (CAPTURE_PICTURES, CHANNEL, FLAG_BURIED, FLAG_CENTRE_INSIDE, FLAG_COVERED,
+                                  FLAG_GUTTER, FLAG_PUSHED_OUT, TEXEL_CHANNELS, TEXELS_FILE, TEXELS_JSON,
+                                  save_capture_pictures)
+from ..shaders.texel_raster import centre_overlap_count, dilate, rasterize, shelf_pack, signed_areas
+from .scene_analysis import (active_scene, bake_targets, loop_triangle_arrays, principled_surface,
+                             transform_points, triangle_areas, unbaked)
+from . import lightmap_modifier
+from .lightmap_modifier import user_modifiers
+from .surface_probe import measure_surfaces
 
 LIGHTMAP_LAYER = "SGLightmap"
 OWNER_KEY = "sglf_lightmap_layer"  # on a mesh: the name of the UV layer SG Lightfield made there

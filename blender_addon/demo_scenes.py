@@ -23,12 +23,8 @@ import bmesh
 import bpy
 from mathutils import Matrix, Vector
 
-try:  # inside the installed extension the numpy side is a sibling package
-    from ..shaders.bake_plan import BakeInputError
-    from .scene_analysis import empty_node_material, enable_nodes
-except ImportError:  # bpy as a module with the repository on sys.path
-    from blender_addon.scene_analysis import empty_node_material, enable_nodes
-    from shaders.bake_plan import BakeInputError
+from ..shaders.bake_plan import BakeInputError
+from .scene_analysis import empty_node_material, enable_nodes
 
 DEMO_SCENES = ("spheres", "room", "courtyard", "materials", "geometry", "hair")
 HAIR_STYLES = ("straight", "wavy", "curly", "clumped")

@@ -33,28 +33,16 @@ import bpy
 import numpy as np
 from mathutils import Vector
 
-try:  # inside the installed extension the numpy side is a sibling package
-    from ..shaders.bake_plan import BakeInputError
-    from ..shaders.bake_report import save_png, update_report
-    from ..shaders.image_metrics import flip, heat, psnr, rmse, tonemap
-    from .apply import BAKE_RECORD_KEY, baked_slots
-    from ..shaders.exr_io import read_exr
-    from .render import compute_device, quiet_stdout, render_still
-    from .capture import lightmap_owners
-    from .scene_analysis import active_scene, bake_targets, empty_node_material, principled_surface
-    from .surface_probe import probe_material
-    from .surface_shaders import BAKED_BSDFS, leaves
-except ImportError:  # bpy as a module with the repository on sys.path
-    from blender_addon.apply import BAKE_RECORD_KEY, baked_slots
-    from blender_addon.render import compute_device, quiet_stdout, render_still
-    from blender_addon.capture import lightmap_owners
-    from blender_addon.scene_analysis import active_scene, bake_targets, empty_node_material, principled_surface
-    from blender_addon.surface_probe import probe_material
-    from blender_addon.surface_shaders import BAKED_BSDFS, leaves
-    from shaders.exr_io import read_exr
-    from shaders.bake_plan import BakeInputError
-    from shaders.bake_report import save_png, update_report
-    from shaders.image_metrics import flip, heat, psnr, rmse, tonemap
+from ..shaders.bake_plan import BakeInputError
+from ..shaders.bake_report import save_png, update_report
+from ..shaders.image_metrics import flip, heat, psnr, rmse, tonemap
+from .apply import BAKE_RECORD_KEY, baked_slots
+from ..shaders.exr_io import read_exr
+from .render import compute_device, quiet_stdout, render_still
+from .capture import lightmap_owners
+from .scene_analysis import active_scene, bake_targets, empty_node_material, principled_surface
+from .surface_probe import probe_material
+from .surface_shaders import BAKED_BSDFS, leaves
 
 
 def inside_line_of_sight(scene, centre, location, see_through=()):

@@ -5,16 +5,10 @@ import os
 
 import bpy
 
-try:  # inside the installed extension the numpy side is a sibling package
-    from ..shaders.bake_plan import BakeCancelled, BakeInputError, BakeSettings
-    from . import apply as apply_module
-    from .pipeline import BakeJob
-    from .scene_analysis import build_plan
-except ImportError:  # bpy as a module with the repository on sys.path
-    from blender_addon import apply as apply_module
-    from blender_addon.pipeline import BakeJob
-    from blender_addon.scene_analysis import build_plan
-    from shaders.bake_plan import BakeCancelled, BakeInputError, BakeSettings
+from ..shaders.bake_plan import BakeCancelled, BakeInputError, BakeSettings
+from . import apply as apply_module
+from .pipeline import BakeJob
+from .scene_analysis import build_plan
 
 _jobs = {}  # scene name -> running BakeJob (one bake per scene)
 # The modal bake renders small tiles so one step (one Cycles call) lasts about a second: Esc is honoured
@@ -242,12 +236,8 @@ class SGLF_OT_filter_hair(bpy.types.Operator):
         return context.scene is not None and context.scene.name not in _jobs
 
     def execute(self, context):
-        try:
-            from ..shaders.hair_filter import HairFilterError
-            from . import hair
-        except ImportError:
-            from blender_addon import hair
-            from shaders.hair_filter import HairFilterError
+        from ..shaders.hair_filter import HairFilterError
+        from . import hair
         panel = context.scene.sg_lightfield
         window_manager = context.window_manager
         window_manager.progress_begin(0, 100)

@@ -19,20 +19,12 @@ import threading
 import time
 from pathlib import Path
 
-try:  # inside the installed extension the numpy side is a sibling package
-    from ..shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
-    from . import apply as apply_module
-    from . import lightmap_modifier
-    from .capture import LIGHTMAP_LAYER, TILE_KEYS, capture, lightmap_owners, remove_lightmap_uvs
-    from .render import render_steps
-    from .scene_analysis import build_plan
-except ImportError:  # bpy as a module with the repository on sys.path
-    from blender_addon import apply as apply_module
-    from blender_addon import lightmap_modifier
-    from blender_addon.capture import LIGHTMAP_LAYER, TILE_KEYS, capture, lightmap_owners, remove_lightmap_uvs
-    from blender_addon.render import render_steps
-    from blender_addon.scene_analysis import build_plan
-    from shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
+from ..shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
+from . import apply as apply_module
+from . import lightmap_modifier
+from .capture import LIGHTMAP_LAYER, TILE_KEYS, capture, lightmap_owners, remove_lightmap_uvs
+from .render import render_steps
+from .scene_analysis import build_plan
 
 ALL_STAGES = ("capture", "render", "train", "apply", "evaluate")
 ETA_MIN_PROGRESS = 0.01  # of a stage, before its own rate is trusted over the plan's estimate
@@ -179,10 +171,7 @@ class BakeJob:
         """The plan's expected seconds of each stage this job runs (at least a second each)."""
         reference_samples, evaluate_pixels = 0, 0
         if "evaluate" in self.stages:
-            try:
-                from .evaluate import EVALUATE_RESOLUTION, EVALUATE_VIEWS, reference_samples_for
-            except ImportError:
-                from blender_addon.evaluate import EVALUATE_RESOLUTION, EVALUATE_VIEWS, reference_samples_for
+            from .evaluate import EVALUATE_RESOLUTION, EVALUATE_VIEWS, reference_samples_for
             reference_samples = self.options["reference_samples"] or reference_samples_for(self.plan.settings)
             evaluate_pixels = EVALUATE_VIEWS * EVALUATE_RESOLUTION[0] * EVALUATE_RESOLUTION[1]
         estimates = self.plan.stage_estimates_s(reference_samples=reference_samples, evaluate_pixels=evaluate_pixels)
@@ -265,7 +254,7 @@ class BakeJob:
         if mode == "auto":
             mode = "in_process" if torch_in_process() else "worker"
         if mode == "in_process":
-            from training.train_stage import train_steps
+            from ..training.train_stage import train_steps
 
             return (yield from self._stage_progress("train", train_steps(self.out_dir, self.plan)))
         return (yield from self._train_worker())
@@ -306,10 +295,7 @@ class BakeJob:
         return result
 
     def _evaluate(self):
-        try:
-            from .evaluate import evaluate_stage, reference_samples_for
-        except ImportError:
-            from blender_addon.evaluate import evaluate_stage, reference_samples_for
+        from .evaluate import evaluate_stage, reference_samples_for
 
         samples = self.options["reference_samples"] or reference_samples_for(self.plan.settings)
         yield "evaluate", self._overall("evaluate", 0.0), f"reference ({samples} spp) and baked renders"

@@ -37,28 +37,16 @@ import bpy
 import numpy as np
 from mathutils import Vector
 
-try:  # inside the installed extension the numpy side is a sibling package
-    from ..shaders.bake_plan import BakeInputError, drive
-    from ..shaders.bake_report import save_png, update_report
-    from ..shaders.env_visibility import env_visibility
-    from ..shaders.exr_io import read_exr, write_exr
-    from ..shaders.lightfield_tiles import (DEFAULT_TILE_MEGAPIXELS, TileIndex, blocks_to_images, images_to_blocks,
-                                            parse_share, plan_tiles, preview_mosaic, read_preview_images,
-                                            tile_is_finished, tile_samples, write_index)
-    from ..shaders.texel_maps import adjacent_texel_pairs, channels, read_texel_maps, texels_of_objects
-    from .capture import scene_bvh
-    from .scene_analysis import active_scene, quiet_stdout, remove_datablocks
-except ImportError:  # bpy as a module with the repository on sys.path
-    from blender_addon.capture import scene_bvh
-    from blender_addon.scene_analysis import active_scene, quiet_stdout, remove_datablocks
-    from shaders.bake_plan import BakeInputError, drive
-    from shaders.bake_report import save_png, update_report
-    from shaders.env_visibility import env_visibility
-    from shaders.exr_io import read_exr, write_exr
-    from shaders.lightfield_tiles import (DEFAULT_TILE_MEGAPIXELS, TileIndex, blocks_to_images, images_to_blocks,
-                                          parse_share, plan_tiles, preview_mosaic, read_preview_images,
-                                          tile_is_finished, tile_samples, write_index)
-    from shaders.texel_maps import adjacent_texel_pairs, channels, read_texel_maps, texels_of_objects
+from ..shaders.bake_plan import BakeInputError, drive
+from ..shaders.bake_report import save_png, update_report
+from ..shaders.env_visibility import env_visibility
+from ..shaders.exr_io import read_exr, write_exr
+from ..shaders.lightfield_tiles import (DEFAULT_TILE_MEGAPIXELS, TileIndex, blocks_to_images, images_to_blocks,
+                                        parse_share, plan_tiles, preview_mosaic, read_preview_images,
+                                        tile_is_finished, tile_samples, write_index)
+from ..shaders.texel_maps import adjacent_texel_pairs, channels, read_texel_maps, texels_of_objects
+from .capture import scene_bvh
+from .scene_analysis import active_scene, quiet_stdout, remove_datablocks
 
 CAMERA_SHADER = Path(__file__).resolve().parent.parent / "shaders" / "lightfield_camera.osl"
 LAMP_MIN_PIXEL_FRACTION = 0.5  # of an octahedral pixel's angular radius (about 2/R radians)

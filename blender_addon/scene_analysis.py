@@ -12,17 +12,10 @@ from dataclasses import dataclass, field
 import bpy
 import numpy as np
 
-try:  # inside the installed extension the numpy side is a sibling package
-    from ..shaders.bake_plan import (GLOSSY_ROUGHNESS_MAX, ROUGH_METALLIC_MAX, BakeInputError, BakePlan, BakeSettings,
-                                     EnvironmentPlan, MaterialPlan, ObjectPlan, auto_sg_count)
-    from .lightmap_modifier import MODIFIER_TYPES, user_modifiers
-    from .surface_shaders import COPY_KEY, LeafInputs, NeedsNodes, analyse_surface, input_constant, leaves
-except ImportError:  # bpy as a module with the repository on sys.path
-    from blender_addon.lightmap_modifier import MODIFIER_TYPES, user_modifiers
-    from blender_addon.surface_shaders import (COPY_KEY, LeafInputs, NeedsNodes, analyse_surface, input_constant,
-                                               leaves)
-    from shaders.bake_plan import (GLOSSY_ROUGHNESS_MAX, ROUGH_METALLIC_MAX, BakeInputError, BakePlan, BakeSettings,
-                                   EnvironmentPlan, MaterialPlan, ObjectPlan, auto_sg_count)
+from ..shaders.bake_plan import (GLOSSY_ROUGHNESS_MAX, ROUGH_METALLIC_MAX, BakeInputError, BakePlan, BakeSettings,
+                                 EnvironmentPlan, MaterialPlan, ObjectPlan, auto_sg_count)
+from .lightmap_modifier import MODIFIER_TYPES, user_modifiers
+from .surface_shaders import COPY_KEY, LeafInputs, NeedsNodes, analyse_surface, input_constant, leaves
 
 # An environment whose luminance-weighted chroma (max-min)/max stays below this is treated as grey:
 # one IWEV channel instead of three.

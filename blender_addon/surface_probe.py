@@ -16,12 +16,8 @@ import time
 import bpy
 import numpy as np
 
-try:  # inside the installed extension the numpy side is a sibling package
-    from .surface_shaders import BAKED_BSDFS, KEPT_SHADERS, LeafInputs, copy_material, rewrite_surface
-    from .scene_analysis import quiet_stdout, unbaked
-except ImportError:  # bpy as a module with the repository on sys.path
-    from blender_addon.scene_analysis import quiet_stdout, unbaked
-    from blender_addon.surface_shaders import BAKED_BSDFS, KEPT_SHADERS, LeafInputs, copy_material, rewrite_surface
+from .surface_shaders import BAKED_BSDFS, KEPT_SHADERS, LeafInputs, copy_material, rewrite_surface
+from .scene_analysis import quiet_stdout, unbaked
 
 PROBE_SUFFIX = " (SG probe)"
 PROBE_IMAGE = "SGLF surface probe"

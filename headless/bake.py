@@ -15,10 +15,13 @@ import sys
 import time
 from pathlib import Path
 
-if __package__ in (None, ""):  # run as a script: make the repository importable
+if __name__ == "__main__" and __package__ in (None, "", "headless"):  # started as a file, by Blender's -P or with -m
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+    from sg_launch import run_in_package
 
-from shaders.bake_plan import PRESETS, ROUGH_MATERIALS, BakeCancelled, BakeInputError, BakeSettings  # noqa: E402
+    run_in_package(__file__)
+
+from ..shaders.bake_plan import PRESETS, ROUGH_MATERIALS, BakeCancelled, BakeInputError, BakeSettings  # noqa: E402
 
 ALL_STAGES = ("capture", "render", "train", "apply", "evaluate")
 IMPLEMENTED_STAGES = ALL_STAGES  # the plan is always made; stages are added here as they land
@@ -150,7 +153,7 @@ def load_scene(ns):
     import bpy
 
     if ns.scene:
-        from blender_addon.demo_scenes import build_demo_scene
+        from ..blender_addon.demo_scenes import build_demo_scene
 
         scene = build_demo_scene(ns.scene)
     elif ns.blend:
@@ -242,7 +245,7 @@ def stage_summary(stage: str, result, plan) -> tuple[str, list]:
 
 
 def run(ns, reporter: Reporter) -> int:
-    from blender_addon.pipeline import BakeJob
+    from ..blender_addon.pipeline import BakeJob
 
     settings = BakeSettings.from_preset(
         ns.preset, texel_density=ns.texel_density, lightfield_resolution=ns.lightfield_resolution,
@@ -298,8 +301,8 @@ def run(ns, reporter: Reporter) -> int:
     if "apply" in job.results:
         import bpy
 
-        from blender_addon.render import quiet_stdout
-        from blender_addon.scene_analysis import active_scene
+        from ..blender_addon.render import quiet_stdout
+        from ..blender_addon.scene_analysis import active_scene
 
         target = ns.blend.expanduser().resolve() if ns.in_place else out / "baked.blend"
         with active_scene(scene), quiet_stdout():

@@ -49,10 +49,13 @@ import sys
 import time
 from pathlib import Path
 
-if __package__ in (None, ""):
+if __name__ == "__main__" and __package__ in (None, "", "headless"):  # started as a file, by Blender's -P or with -m
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+    from sg_launch import run_in_package
 
-from shaders.bake_plan import (  # noqa: E402
+    run_in_package(__file__)
+
+from ..shaders.bake_plan import (  # noqa: E402
     LOBE_REFIT_STEPS, PRESETS, BakeInputError, BakeSettings, write_json_atomic)
 
 CAPTURE_TARGET_S = 10.0
@@ -61,9 +64,9 @@ SECTIONS = ("capture", "render", "train", "sgcount", "encoders", "knobs", "apply
 
 
 def bench_capture(scenes, presets, out_root: Path) -> list[dict]:
-    from blender_addon.capture import capture, remove_lightmap_uvs
-    from blender_addon.demo_scenes import build_demo_scene
-    from blender_addon.scene_analysis import build_plan
+    from ..blender_addon.capture import capture, remove_lightmap_uvs
+    from ..blender_addon.demo_scenes import build_demo_scene
+    from ..blender_addon.scene_analysis import build_plan
 
     rows = []
     for name in scenes:
@@ -95,11 +98,11 @@ def bench_render(out_root: Path, per_texel_subset: int = 24, device: str = "cpu"
 
     import numpy as np
 
-    from blender_addon.capture import capture
-    from blender_addon.demo_scenes import build_demo_scene
-    from blender_addon.render import _RenderScene, _texel_inputs, render_stage, valid_texels
-    from blender_addon.scene_analysis import build_plan
-    from shaders.texel_maps import read_texel_maps
+    from ..blender_addon.capture import capture
+    from ..blender_addon.demo_scenes import build_demo_scene
+    from ..blender_addon.render import _RenderScene, _texel_inputs, render_stage, valid_texels
+    from ..blender_addon.scene_analysis import build_plan
+    from ..shaders.texel_maps import read_texel_maps
 
     resolution, samples = 16, 16
     scene = build_demo_scene("room")
@@ -188,13 +191,13 @@ def _rendered_lightfields(out_root: Path, scene_name: str, density: float | None
     (M, 2) indices of every pair of adjacent texels of one object)."""
     import numpy as np
 
-    from blender_addon.capture import capture
-    from blender_addon.demo_scenes import build_demo_scene
-    from blender_addon.render import render_stage
-    from blender_addon.scene_analysis import build_plan
-    from shaders.lightfield_tiles import read_images
-    from shaders.texel_maps import adjacent_texel_pairs, channels, read_texel_maps
-    from training.sg_fit import pair_indices
+    from ..blender_addon.capture import capture
+    from ..blender_addon.demo_scenes import build_demo_scene
+    from ..blender_addon.render import render_stage
+    from ..blender_addon.scene_analysis import build_plan
+    from ..shaders.lightfield_tiles import read_images
+    from ..shaders.texel_maps import adjacent_texel_pairs, channels, read_texel_maps
+    from ..training.sg_fit import pair_indices
 
     scene = build_demo_scene(scene_name)
     settings = BakeSettings.from_preset("draft", lightfield_resolution=16, samples=32,
@@ -215,9 +218,9 @@ def bench_train(out_root: Path, scene_name: str = "spheres", budget_s: float = 6
                 density: float | None = None, midpoints: int = 128) -> dict:
     import torch
 
-    from training.baselines import (bytes_per_texel_fixed_sg, bytes_per_texel_sh_l2, eval_fixed_sg, eval_sh,
+    from ..training.baselines import (bytes_per_texel_fixed_sg, bytes_per_texel_sh_l2, eval_fixed_sg, eval_sh,
                                     fit_fixed_sg, fit_sh_l2)
-    from training.sg_fit import (LightFieldData, TrainConfig, Trainer, error_metrics, midpoint_parameters,
+    from ..training.sg_fit import (LightFieldData, TrainConfig, Trainer, error_metrics, midpoint_parameters,
                                  pair_indices, reconstruct, unit_midpoint)
 
     texels, images, normals, pairs, held_out, neighbours = _rendered_lightfields(out_root, scene_name, density,
@@ -298,7 +301,7 @@ def _time_to_within(seconds, losses, tolerance: float, target: float | None = No
 
 def _lobe_width(roughness: float) -> float:
     """1/sqrt(lam) of the GGX lobe in the reflection domain (the kernel of shaders/env_visibility.py), radians."""
-    from shaders.sg_math import clamp_roughness, ndf_sg
+    from ..shaders.sg_math import clamp_roughness, ndf_sg
 
     return 1.0 / math.sqrt(float(ndf_sg(None, clamp_roughness(roughness))[1]) / 4.0)
 
@@ -311,8 +314,8 @@ def bench_sg_count(out_root: Path, scenes=("spheres", "room"), budget_s: float =
     import numpy as np
     import torch
 
-    from shaders.bake_plan import SG_COUNT_CANDIDATES, SG_COUNT_ERROR_BUDGET
-    from training.sg_fit import LightFieldData, TrainConfig, Trainer, glossy_error, reconstruct
+    from ..shaders.bake_plan import SG_COUNT_CANDIDATES, SG_COUNT_ERROR_BUDGET
+    from ..training.sg_fit import LightFieldData, TrainConfig, Trainer, glossy_error, reconstruct
 
     roughnesses = (0.05, 0.15, 0.25, 0.35, 0.45, 0.55)
     errors = {}  # scene -> N -> [error per roughness]
@@ -364,9 +367,9 @@ def bench_apply(out_root: Path, sg_counts=(4, 8, 16, 32)) -> list[dict]:
     `spheres` (shader compilation included) and a second render of the same view (compiled), 256x144.
     EEVEE runs on this machine's OpenGL (llvmpipe, software, without a GPU): the compile share is what
     scales with N; absolute frame times need a GPU."""
-    from blender_addon.demo_scenes import build_demo_scene
-    from blender_addon.evaluate import render_eevee
-    from blender_addon.pipeline import BakeJob
+    from ..blender_addon.demo_scenes import build_demo_scene
+    from ..blender_addon.evaluate import render_eevee
+    from ..blender_addon.pipeline import BakeJob
 
     rows = []
     for n in sg_counts:
@@ -401,8 +404,8 @@ def bench_presets(out_root: Path, scenes, presets, earlier_rows=(), device: str 
     runs (other scenes or presets, e.g. Production run on its own) are kept unless measured again."""
     import json
 
-    from blender_addon.demo_scenes import build_demo_scene
-    from blender_addon.pipeline import BakeJob
+    from ..blender_addon.demo_scenes import build_demo_scene
+    from ..blender_addon.pipeline import BakeJob
 
     measured = {(s, p, device) for s in scenes for p in presets}
     rows = [r for r in earlier_rows if (r["scene"], r["preset"], _device_of(r)) not in measured]
@@ -445,11 +448,11 @@ def _texture_means(scene, out_dir: Path) -> dict:
     input of the material's own tree, over the texels of the first baked object using it (a captured bake)."""
     import numpy as np
 
-    from blender_addon.capture import ObjectTile
-    from blender_addon.scene_analysis import BakeTarget, unbaked
-    from blender_addon.surface_probe import mean_of_links
-    from blender_addon.surface_shaders import BAKED_BSDFS
-    from shaders.texel_maps import channels, read_texel_maps
+    from ..blender_addon.capture import ObjectTile
+    from ..blender_addon.scene_analysis import BakeTarget, unbaked
+    from ..blender_addon.surface_probe import mean_of_links
+    from ..blender_addon.surface_shaders import BAKED_BSDFS
+    from ..shaders.texel_maps import channels, read_texel_maps
 
     atlas, info = read_texel_maps(out_dir)
     object_ids = channels(atlas, "object_id").astype(np.int64)
@@ -475,7 +478,7 @@ def _texture_means(scene, out_dir: Path) -> dict:
 def _replace_textures_with_means(scene, means: dict) -> int:
     """Unlink each measured input and give it its mean (a Normal input unlinked is the surface's own normal, the mean
     of a bump or normal map's tilt). Returns the inputs replaced."""
-    from blender_addon.scene_analysis import unbaked
+    from ..blender_addon.scene_analysis import unbaked
 
     replaced = 0
     materials = {unbaked(s.material) for o in scene.objects for s in getattr(o, "material_slots", []) if s.material}
@@ -497,8 +500,8 @@ def bench_materials(out_root: Path, presets=("draft", "preview")) -> list[dict]:
     Cycles and EEVEE, EEVEE without the bake, per material (see the module docstring for the targets)."""
     import json
 
-    from blender_addon.demo_scenes import build_demo_scene
-    from blender_addon.pipeline import BakeJob
+    from ..blender_addon.demo_scenes import build_demo_scene
+    from ..blender_addon.pipeline import BakeJob
 
     rows = []
     for preset in presets:
@@ -550,8 +553,8 @@ def bench_geometry(out_root: Path, preset="draft") -> list[dict]:
     preset: per object its geometry, texels and the bake's FLIP in EEVEE with and without it, per material."""
     import json
 
-    from blender_addon.demo_scenes import build_demo_scene
-    from blender_addon.pipeline import BakeJob
+    from ..blender_addon.demo_scenes import build_demo_scene
+    from ..blender_addon.pipeline import BakeJob
 
     scene = build_demo_scene("geometry")
     out = out_root / f"geometry_{preset}"
@@ -592,8 +595,8 @@ def _instance_tile_cost(scene, frames=3) -> dict:
 
     import bpy
 
-    from blender_addon import lightmap_modifier
-    from blender_addon.scene_analysis import active_scene, quiet_stdout
+    from ..blender_addon import lightmap_modifier
+    from ..blender_addon.scene_analysis import active_scene, quiet_stdout
 
     scene.render.engine = "BLENDER_EEVEE"
     scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 960, 540, 100
@@ -623,7 +626,7 @@ def _discard_scene(scene):
     its own names: its plan and report say "Floor", not "Floor.002"."""
     import bpy
 
-    from blender_addon.apply import remove_bake
+    from ..blender_addon.apply import remove_bake
 
     remove_bake(scene)
     bpy.data.scenes.remove(scene)
@@ -709,20 +712,20 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 32,
     §22 against texel density, §25-26 this setting's."""
     import numpy as np
 
-    from blender_addon.apply import apply_stage
-    from blender_addon.capture import capture
-    from blender_addon.demo_scenes import build_demo_scene
-    from blender_addon.evaluate import evaluate_stage
-    from blender_addon.render import render_stage
-    from blender_addon.scene_analysis import build_plan
-    from shaders.image_metrics import rmse_against_converged
-    from shaders.lightfield_tiles import read_images
-    from shaders.sg_textures import read_sg_texture, read_sh_texture
-    from shaders.texel_maps import channels, read_texel_maps, texels_of_objects
-    from training.baselines import eval_sh
-    from training.glossy_refit import encoding_error_split
-    from training.sg_fit import glossy_error, reconstruct
-    from training.train_stage import evenly, texel_roughness, train_stage
+    from ..blender_addon.apply import apply_stage
+    from ..blender_addon.capture import capture
+    from ..blender_addon.demo_scenes import build_demo_scene
+    from ..blender_addon.evaluate import evaluate_stage
+    from ..blender_addon.render import render_stage
+    from ..blender_addon.scene_analysis import build_plan
+    from ..shaders.image_metrics import rmse_against_converged
+    from ..shaders.lightfield_tiles import read_images
+    from ..shaders.sg_textures import read_sg_texture, read_sh_texture
+    from ..shaders.texel_maps import channels, read_texel_maps, texels_of_objects
+    from ..training.baselines import eval_sh
+    from ..training.glossy_refit import encoding_error_split
+    from ..training.sg_fit import glossy_error, reconstruct
+    from ..training.train_stage import evenly, texel_roughness, train_stage
 
     rows = []
 
@@ -874,9 +877,9 @@ def bench_knobs(out_root: Path, scene_name: str = "spheres", sweep=None) -> list
     overall and on glossy pixels. The presets in shaders/bake_plan.py are chosen from this table."""
     import json
 
-    from blender_addon.demo_scenes import build_demo_scene
-    from blender_addon.evaluate import evaluate_stage
-    from blender_addon.pipeline import BakeJob
+    from ..blender_addon.demo_scenes import build_demo_scene
+    from ..blender_addon.evaluate import evaluate_stage
+    from ..blender_addon.pipeline import BakeJob
 
     sweep = sweep or KNOB_SWEEP
     runs = [("draft", None, None)] + [(f"{knob}={value:g}", knob, value) for knob, values in sweep.items()
@@ -916,13 +919,13 @@ def bench_stability(out_root: Path, variants=None) -> list[dict]:
     light fields, SG textures, packed image, the baked render) is finite, and the errors."""
     import numpy as np
 
-    from blender_addon.demo_scenes import STABILITY_VARIANTS, build_stability_variant
-    from blender_addon.evaluate import evaluate_stage
-    from blender_addon.pipeline import BakeJob
-    from shaders.exr_io import read_exr
-    from shaders.lightfield_tiles import read_images
-    from shaders.sg_textures import read_sg_texture
-    from shaders.texel_maps import read_texel_maps
+    from ..blender_addon.demo_scenes import STABILITY_VARIANTS, build_stability_variant
+    from ..blender_addon.evaluate import evaluate_stage
+    from ..blender_addon.pipeline import BakeJob
+    from ..shaders.exr_io import read_exr
+    from ..shaders.lightfield_tiles import read_images
+    from ..shaders.sg_textures import read_sg_texture
+    from ..shaders.texel_maps import read_texel_maps
 
     rows = []
     for variant in variants or STABILITY_VARIANTS:
@@ -1082,7 +1085,7 @@ def main(argv=None) -> int:
     if "stability" in sections:
         results["stability"] = bench_stability(ns.out)
     if "hair" in sections:
-        from headless.bench_hair import bench_hair
+        from .bench_hair import bench_hair
 
         results["hair"] = bench_hair(ns.out, ns.quick)
     merged = {**earlier, **results}  # sections run earlier are kept

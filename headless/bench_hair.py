@@ -29,13 +29,16 @@ from pathlib import Path
 
 import numpy as np
 
-if __package__ in (None, ""):
+if __name__ == "__main__" and __package__ in (None, "", "headless"):  # started as a file, by Blender's -P or with -m
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+    from sg_launch import run_in_package
 
-from shaders import hair_pairs, hair_raster  # noqa: E402
-from shaders.bake_plan import write_json_atomic  # noqa: E402
-from shaders.hair_filter import DEFAULT_NETWORK, MODELS_DIR, SHIPPED_MODELS, HairFilterError, load_filter  # noqa: E402
-from shaders.image_metrics import flip, psnr, tonemap  # noqa: E402
+    run_in_package(__file__)
+
+from ..shaders import hair_pairs, hair_raster  # noqa: E402
+from ..shaders.bake_plan import write_json_atomic  # noqa: E402
+from ..shaders.hair_filter import DEFAULT_NETWORK, MODELS_DIR, SHIPPED_MODELS, HairFilterError, load_filter  # noqa: E402
+from ..shaders.image_metrics import flip, psnr, tonemap  # noqa: E402
 
 HAIR_COLOR, LIGHT, BACKGROUND = np.array(hair_raster.EVALUATION_LOOK[0]), *hair_raster.EVALUATION_LOOK[1:]
 
@@ -54,9 +57,9 @@ def _oidn(image):
 def bench_inference(models: dict, size: int = 1024, repeats: int = 3, more_4spp_models=()) -> list[dict]:
     import bpy
 
-    from blender_addon import hair
-    from blender_addon.demo_scenes import build_demo_scene
-    from blender_addon.scene_analysis import active_scene
+    from ..blender_addon import hair
+    from ..blender_addon.demo_scenes import build_demo_scene
+    from ..blender_addon.scene_analysis import active_scene
 
     rows = []
     scene = build_demo_scene("demo:hair")
@@ -108,8 +111,8 @@ def _grooms():
         if (style, density) not in cache:
             import bpy
 
-            from blender_addon import hair
-            from blender_addon.scene_analysis import active_scene
+            from ..blender_addon import hair
+            from ..blender_addon.scene_analysis import active_scene
 
             scene, objects = hair.dataset_groom(style, density)
             with active_scene(scene):
@@ -133,7 +136,7 @@ UNSEEN_SPLIT, POOLED_SPLIT = "unseen views (trained styles)", "trained styles, v
 
 def unseen_view_jobs(count: int) -> list[tuple[str, int, str]]:
     """Views of the trained styles past the dataset's indices: drawn like its pairs, never rendered into it."""
-    from headless import hair_dataset
+    from . import hair_dataset
 
     return hair_dataset.dataset_jobs(hair_dataset.PAIRS + count, 0)[hair_dataset.PAIRS:]
 
@@ -144,8 +147,8 @@ def bench_quality(models: dict, out_root: Path, max_pairs: int = 40, pictures: i
     validation pairs of the trained styles and its held-out style, and unseen_views more views of the trained
     styles; input and Cycles reference rendered here. extra_models: {name: path} of further 4-spp models, scored
     as "<name> 4 spp"."""
-    from blender_addon.hair import render_reference
-    from headless import hair_dataset
+    from ..blender_addon.hair import render_reference
+    from . import hair_dataset
 
     filters = {spp: load_filter(path) for spp, path in models.items()}
     candidate_filters = {f"{name} 4 spp": candidate_filter(path) for name, path in (extra_models or {}).items()}
@@ -214,7 +217,7 @@ def bench_quality(models: dict, out_root: Path, max_pairs: int = 40, pictures: i
         for name in candidate_filters:
             tables[POOLED_SPLIT]["paired"].update(paired_differences(pooled, name, ("stochastic 16 spp",)))
     if rows_img:
-        from shaders.bake_report import save_png
+        from ..shaders.bake_report import save_png
 
         save_png(out_root / "hair_rows.png", np.concatenate(rows_img, axis=0), min_width=1)
     return tables

@@ -14,12 +14,15 @@ import argparse
 import sys
 from pathlib import Path
 
-if __package__ in (None, ""):
+if __name__ == "__main__" and __package__ in (None, "", "headless"):  # started as a file, by Blender's -P or with -m
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+    from sg_launch import run_in_package
 
-from headless.bake import Reporter, script_args  # noqa: E402
-from shaders.bake_plan import BakeInputError  # noqa: E402
-from shaders.hair_filter import DEFAULT_NETWORK, DEFAULT_PASSES, MIRRORS, SHIPPED_MODELS, HairFilterError  # noqa: E402
+    run_in_package(__file__)
+
+from .bake import Reporter, script_args  # noqa: E402
+from ..shaders.bake_plan import BakeInputError  # noqa: E402
+from ..shaders.hair_filter import DEFAULT_NETWORK, DEFAULT_PASSES, MIRRORS, SHIPPED_MODELS, HairFilterError  # noqa: E402
 
 
 def parse_args(args):
@@ -51,9 +54,9 @@ def main(argv=None) -> int:
         ns = parse_args(script_args(sys.argv if argv is None else ["", *argv]))
     except SystemExit as exit_:
         return int(exit_.code or 0)
-    from headless.bake import load_scene
+    from .bake import load_scene
 
-    from blender_addon import hair
+    from ..blender_addon import hair
 
     reporter = Reporter(as_json=False)
     try:

@@ -10,10 +10,7 @@ import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-try:
-    from .atomic import atomic_output
-except ImportError:
-    from shaders.atomic import atomic_output
+from .atomic import atomic_output
 
 PLAN_VERSION = 1
 

@@ -10,12 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-try:
-    from .atomic import atomic_output
-    from .bake_plan import write_json_atomic
-except ImportError:
-    from shaders.atomic import atomic_output
-    from shaders.bake_plan import write_json_atomic
+from .atomic import atomic_output
+from .bake_plan import write_json_atomic
 
 REPORT_NAME = "report.json"
 
@@ -39,10 +35,7 @@ def update_report(out_dir, plan_hash: str, *, timings_s: dict | None = None, **f
     report.setdefault("timings_s", {}).update({k: round(float(v), 3) for k, v in (timings_s or {}).items()})
     report.update(fields)
     write_json_atomic(Path(out_dir) / REPORT_NAME, report)
-    try:
-        from .report_html import write_report_html
-    except ImportError:
-        from shaders.report_html import write_report_html
+    from .report_html import write_report_html
     write_report_html(out_dir)
     return report
 

@@ -16,9 +16,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from shaders import octahedral as octa
-from shaders import sg_math as m
-from shaders.quadrature import adaptive_sphere_quadrature, fibonacci_sphere, frame_from_z, sg_width
+from . import octahedral as octa
+from . import sg_math as m
+from .quadrature import adaptive_sphere_quadrature, fibonacci_sphere, frame_from_z, sg_width
 
 MIN_POINTS = 1_000_000
 SHARPNESS_GRID = (1e-4, 1e-2, 1.0, 10.0, 100.0, 1e3, 1e4)

@@ -15,12 +15,8 @@ import functools
 
 import numpy as np
 
-try:
-    from .octahedral import oct_decode, pixel_directions, pixel_solid_angles
-    from .sg_math import clamp_roughness, ndf_sg
-except ImportError:
-    from shaders.octahedral import oct_decode, pixel_directions, pixel_solid_angles
-    from shaders.sg_math import clamp_roughness, ndf_sg
+from .octahedral import oct_decode, pixel_directions, pixel_solid_angles
+from .sg_math import clamp_roughness, ndf_sg
 
 HORIZON_SUBSAMPLES = 8  # per pixel side, for the above-horizon fraction m
 ROUGHNESS_GROUP_STEP = 1e-3  # texels whose roughness differs by less share a kernel

@@ -10,10 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-try:
-    from .atomic import atomic_output
-except ImportError:
-    from shaders.atomic import atomic_output
+from .atomic import atomic_output
 
 _DTYPES = {"half": np.float16, "float": np.float32}
 

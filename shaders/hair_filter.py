@@ -15,10 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-try:
-    from .hair_raster import FEATURE_NAMES, StochasticRender
-except ImportError:
-    from shaders.hair_raster import FEATURE_NAMES, StochasticRender
+from .hair_raster import FEATURE_NAMES, StochasticRender
 
 MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
 SHIPPED_MODELS = {  # the 4-spp networks shipped in models/; docs/design-additions.md §22 and §25 measure both

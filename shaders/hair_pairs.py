@@ -14,14 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-try:
-    from .atomic import atomic_output
-    from .exr_io import read_exr, write_exr
-    from .hair_raster import EVALUATION_LOOK, FEATURE_NAMES, OUTPUT_NAMES, composite
-except ImportError:
-    from shaders.atomic import atomic_output
-    from shaders.exr_io import read_exr, write_exr
-    from shaders.hair_raster import EVALUATION_LOOK, FEATURE_NAMES, OUTPUT_NAMES, composite
+from .atomic import atomic_output
+from .exr_io import read_exr, write_exr
+from .hair_raster import EVALUATION_LOOK, FEATURE_NAMES, OUTPUT_NAMES, composite
 
 PAIR_SAMPLES = 4
 VALIDATION_EVERY = 10

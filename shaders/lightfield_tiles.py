@@ -19,12 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-try:
-    from .bake_plan import BakeInputError, write_json_atomic
-    from .exr_io import ExrError, read_exr, read_exr_metadata
-except ImportError:
-    from shaders.bake_plan import BakeInputError, write_json_atomic
-    from shaders.exr_io import ExrError, read_exr, read_exr_metadata
+from .bake_plan import BakeInputError, write_json_atomic
+from .exr_io import ExrError, read_exr, read_exr_metadata
 
 INDEX_NAME = "index.json"
 DEFAULT_TILE_MEGAPIXELS = 4.0  # Cycles keeps a few float passes per pixel: ~100 MB per tile at 4 MP

@@ -22,10 +22,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-try:
-    from .sg_shading import shade
-except ImportError:
-    from shaders.sg_shading import shade
+from .sg_shading import shade
 
 GROUP_NAME = "SG Lightfield"
 GROUP_VERSION = 4  # 4: an Irradiance output (E / pi) for Diffuse BSDFs; 3: every input computed (EEVEE uniforms)

@@ -7,12 +7,8 @@ import html
 import json
 from pathlib import Path
 
-try:
-    from .atomic import atomic_output
-    from .image_metrics import rmse_against_converged
-except ImportError:
-    from shaders.atomic import atomic_output
-    from shaders.image_metrics import rmse_against_converged
+from .atomic import atomic_output
+from .image_metrics import rmse_against_converged
 
 PICTURE_CAPTIONS = [
     ("capture_position.png", "Texel positions (atlas)"), ("capture_normal.png", "Texel shading normals"),

@@ -15,16 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-try:
-    from .bake_plan import BakeInputError
-    from .exr_io import read_exr, read_exr_metadata, write_exr
-    from .sg_math import AMPLITUDE_MAX_HALF, half_amplitude_scale, pack_sg_half, unpack_sg_half
-    from .texel_raster import dilate
-except ImportError:
-    from shaders.bake_plan import BakeInputError
-    from shaders.exr_io import read_exr, read_exr_metadata, write_exr
-    from shaders.sg_math import AMPLITUDE_MAX_HALF, half_amplitude_scale, pack_sg_half, unpack_sg_half
-    from shaders.texel_raster import dilate
+from .bake_plan import BakeInputError
+from .exr_io import read_exr, read_exr_metadata, write_exr
+from .sg_math import AMPLITUDE_MAX_HALF, half_amplitude_scale, pack_sg_half, unpack_sg_half
+from .texel_raster import dilate
 
 SH_ENCODER = "sh_l2"
 SG_FILES = {"lightfield": "sg_lightfield.exr", "env_visibility": "sg_env_visibility.exr"}

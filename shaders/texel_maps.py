@@ -9,14 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-try:
-    from .bake_plan import BakeInputError
-    from .bake_report import save_png
-    from .exr_io import read_exr
-except ImportError:
-    from shaders.bake_plan import BakeInputError
-    from shaders.bake_report import save_png
-    from shaders.exr_io import read_exr
+from .bake_plan import BakeInputError
+from .bake_report import save_png
+from .exr_io import read_exr
 
 TEXELS_FILE, TEXELS_JSON = "texels.exr", "texels.json"
 TEXEL_CHANNELS = [

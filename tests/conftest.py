@@ -8,3 +8,8 @@ import tempfile
 if "BLENDER_USER_RESOURCES" not in os.environ:
     os.environ["BLENDER_USER_RESOURCES"] = tempfile.mkdtemp(prefix="sglf-blender-user-")
     atexit.register(shutil.rmtree, os.environ["BLENDER_USER_RESOURCES"], ignore_errors=True)
+
+# The repository is the package sg_lightfield (its modules import each other relatively; sg_launch.py).
+import sg_launch  # noqa: E402  (after the user-resources set-up above, which must precede bpy)
+
+sg_launch.load_package()

@@ -6,7 +6,7 @@ import bpy  # noqa: I001  (bmesh exists only once bpy is imported)
 import bmesh
 import numpy as np
 
-from blender_addon.scene_analysis import enable_nodes
+from sg_lightfield.blender_addon.scene_analysis import enable_nodes
 
 
 def base_name(name: str) -> str:

@@ -8,18 +8,18 @@ import numpy as np
 import pytest
 from mathutils import Vector
 
-from blender_addon.apply import BAKE_RECORD_KEY, IMAGE_NAME, apply_stage, baked_group, remove_bake
-from blender_addon.capture import capture
-from blender_addon.render import quiet_stdout, render_stage
-from blender_addon.scene_analysis import active_scene, build_plan
-from shaders import sg_math as m
-from shaders.bake_plan import BakeSettings
-from shaders.exr_io import read_exr, write_exr
-from shaders.node_group import GROUP_NAME, SGTextureLayout, build_node_group, flattened_node_count
-from shaders.sg_shading import NumpyOps, encode_sharpness, shade
-from shaders.sg_textures import pack_tiles
+from sg_lightfield.blender_addon.apply import BAKE_RECORD_KEY, IMAGE_NAME, apply_stage, baked_group, remove_bake
+from sg_lightfield.blender_addon.capture import capture
+from sg_lightfield.blender_addon.render import quiet_stdout, render_stage
+from sg_lightfield.blender_addon.scene_analysis import active_scene, build_plan
+from sg_lightfield.shaders import sg_math as m
+from sg_lightfield.shaders.bake_plan import BakeSettings
+from sg_lightfield.shaders.exr_io import read_exr, write_exr
+from sg_lightfield.shaders.node_group import GROUP_NAME, SGTextureLayout, build_node_group, flattened_node_count
+from sg_lightfield.shaders.sg_shading import NumpyOps, encode_sharpness, shade
+from sg_lightfield.shaders.sg_textures import pack_tiles
 from tests.scene_helpers import material, mesh_fingerprint, mesh_object, scene_with, uniform_world, uv_sphere
-from training.train_stage import ENV_SG_COUNT
+from sg_lightfield.training.train_stage import ENV_SG_COUNT
 
 pytestmark = pytest.mark.slow
 
@@ -178,8 +178,8 @@ def test_layered_diffuse_and_split_sum_specular_match_principled_in_a_white_furn
     """Dielectric spheres under a uniform white sky, rendered by Cycles' Principled BSDF and shaded by `shade` from
     their irradiance (pi) without SGs: the specular's split-sum albedo and the diffuse layered under it, per n.v.
     A black base shows the specular alone; a grey one the layering, which leaving out costs 0.8 A (2 % to 12 % here)."""
-    from blender_addon.render import render_still
-    from blender_addon.scene_analysis import principled_surface
+    from sg_lightfield.blender_addon.render import render_still
+    from sg_lightfield.blender_addon.scene_analysis import principled_surface
 
     cases = [(roughness, base) for roughness in (0.25, 0.9) for base in (0.0, 0.8)]
     scene = bpy.data.scenes.new("white furnace")
@@ -241,7 +241,7 @@ def test_write_back_remove_restores_everything_and_rebake_does_not_pile_up(tmp_p
                                                       training_budget_s=1.0))
     capture(scene, plan, tmp_path)
     render_stage(scene, plan, tmp_path)
-    from training.train_stage import train_stage
+    from sg_lightfield.training.train_stage import train_stage
 
     train_stage(tmp_path, plan)
     counts = []
@@ -271,7 +271,7 @@ def test_write_back_remove_restores_everything_and_rebake_does_not_pile_up(tmp_p
         scene.camera.location = (1, -6, 0.5)
         scene.camera.rotation_euler = (1.5, 0, 0)
         bpy.ops.render.render(write_still=True, scene=scene.name)
-    from blender_addon.evaluate import evaluate_stage
+    from sg_lightfield.blender_addon.evaluate import evaluate_stage
 
     objects_before = set(bpy.data.objects.keys())
     errors = evaluate_stage(scene, plan, tmp_path, views=2, resolution=(32, 18), reference_samples=8)
@@ -330,8 +330,8 @@ def test_eevee_renders_the_baked_scene_like_cycles_evaluates_it(tmp_path):
     import sys
     from pathlib import Path
 
-    from blender_addon.pipeline import BakeJob
-    from shaders.image_metrics import tonemap
+    from sg_lightfield.blender_addon.pipeline import BakeJob
+    from sg_lightfield.shaders.image_metrics import tonemap
 
     scene = bpy.data.scenes.new("eevee parity")
     for i, roughness in enumerate((0.2, 0.45)):
@@ -377,8 +377,8 @@ def test_eevee_renders_the_baked_spheres_in_the_evaluate_stage(tmp_path):
     picture reference | EEVEE | FLIP into the bake directory, and on the baked surfaces EEVEE matches Cycles'
     evaluation of the same nodes (the rough floor is EEVEE's own lighting, which lacks the emissive arcs'
     light without its ray tracing)."""
-    from blender_addon.demo_scenes import build_demo_scene
-    from blender_addon.pipeline import BakeJob
+    from sg_lightfield.blender_addon.demo_scenes import build_demo_scene
+    from sg_lightfield.blender_addon.pipeline import BakeJob
 
     scene = build_demo_scene("demo:spheres")
     # 4 SGs: EEVEE compiles each baked material's group on this CPU (16 SGs: 7 of the suite's 20 minutes); the
@@ -414,10 +414,10 @@ def test_each_material_gets_the_sg_count_its_roughness_needs(tmp_path):
     """A smooth and a rougher glossy material: the rougher one is fitted and shaded with fewer SGs (its texels'
     extra SGs are zero after the amplitude and lobe refits too, its node group is smaller); --uniform-sg-count
     gives both the same."""
-    from shaders.bake_plan import auto_sg_count
-    from shaders.sg_textures import read_sg_texture
-    from shaders.texel_maps import channels, read_texel_maps
-    from training.train_stage import train_stage
+    from sg_lightfield.shaders.bake_plan import auto_sg_count
+    from sg_lightfield.shaders.sg_textures import read_sg_texture
+    from sg_lightfield.shaders.texel_maps import channels, read_texel_maps
+    from sg_lightfield.training.train_stage import train_stage
 
     smooth, rougher = material("Smooth", 0.1, metallic=1.0), material("Rougher", 0.58, metallic=1.0)
     ball = mesh_object("Smooth ball", uv_sphere(0.6, 16, 8), smooth)
@@ -463,7 +463,7 @@ def test_each_material_gets_the_sg_count_its_roughness_needs(tmp_path):
     page = (tmp_path / "report.html").read_text()  # the report and the command line say what the refits did
     assert "lobe refit (axes, sharpness, amplitudes)</th><td>10 steps on " in page
     assert "glossy error between texels (SGs blended), Rougher" in page
-    from headless.bake import _shaded_error_summary
+    from sg_lightfield.headless.bake import _shaded_error_summary
     assert "between texels where the lobes were refitted" in _shaded_error_summary(metrics)
     _, _, amplitude, meta = read_sg_texture(tmp_path / "sg_lightfield.exr")
     assert int(meta["sg_count"]) == counts["Smooth"]
@@ -497,8 +497,8 @@ def test_sh_baseline_bakes_applies_and_shades_through_its_own_group(tmp_path):
     """The benchmark's SH L2 encoder end to end: an SH texture, the SH variant of the group, a finite Cycles
     render that sees the lamp, irradiance from the SH coefficients close to the rendered one (L2 SH holds
     irradiance to a few per cent), and Remove SG Bake takes the group away."""
-    from shaders.sg_textures import is_sh_texture
-    from training.train_stage import train_stage
+    from sg_lightfield.shaders.sg_textures import is_sh_texture
+    from sg_lightfield.training.train_stage import train_stage
 
     ball = mesh_object("SH ball", uv_sphere(0.6, 16, 8), material("SH metal", 0.5, metallic=1.0))
     floor = mesh_object("SH floor", lambda bm: bmesh.ops.create_grid(bm, x_segments=1, y_segments=1, size=3.0),
@@ -530,8 +530,8 @@ def test_each_training_seed_keeps_its_own_checkpoint_and_gives_its_own_sgs(tmp_p
     """The benchmark trains the CNN several times on the same light fields (one training's glossy error varies by
     up to 30 % with its seed, docs/design-additions.md §26). A seed has its own checkpoint: seed 1 must not resume
     seed 0's curve, and seed 0 run again resumes its own, done at its budget, to the same SGs."""
-    from shaders.sg_textures import read_sg_texture
-    from training.train_stage import train_stage
+    from sg_lightfield.shaders.sg_textures import read_sg_texture
+    from sg_lightfield.training.train_stage import train_stage
 
     ball = mesh_object("Seed ball", uv_sphere(0.6, 16, 8), material("Seed metal", 0.5, metallic=1.0))
     lamp = bpy.data.objects.new("Seed lamp", bpy.data.lights.new("Seed lamp", "AREA"))
@@ -558,10 +558,10 @@ def test_with_environment_visibility_one_graph_shades_both_renderers_and_the_sg_
     check of the SGs' own irradiance compared them with that sky-lit total, and reported a median error of 0.98 on
     the courtyard; it must compare them with the light field they encode. And EEVEE spent minutes per courtyard
     material on a Cycles graph beside its own, so one graph feeds one output both renderers use."""
-    from blender_addon.apply import irradiance_from_lightfields
-    from shaders.lightfield_tiles import read_images
-    from shaders.texel_maps import channels, read_texel_maps
-    from training.train_stage import train_stage
+    from sg_lightfield.blender_addon.apply import irradiance_from_lightfields
+    from sg_lightfield.shaders.lightfield_tiles import read_images
+    from sg_lightfield.shaders.texel_maps import channels, read_texel_maps
+    from sg_lightfield.training.train_stage import train_stage
 
     ball = mesh_object("Ball", uv_sphere(1.0), material("glossy", 0.3, metallic=1.0))
     ball.location = (0.0, 0.0, 1.0)
@@ -595,7 +595,7 @@ def test_with_environment_visibility_one_graph_shades_both_renderers_and_the_sg_
 def test_eevee_shader_failures_are_read_from_the_render_log():
     """EEVEE draws a material whose shader fails to compile in magenta and goes on; the evaluate stage names it.
     The log is what Blender 5.0.1 printed for the baked courtyard (docs/design-additions.md §13)."""
-    from blender_addon.evaluate import shader_errors
+    from sg_lightfield.blender_addon.evaluate import shader_errors
 
     log = ("00:17.263  gpu.shader       | ERROR MAGlossy Ground (SG bake) Linking: \n"
            "                            |       | Error: Uniform block node_tree too big (125168/65536)\n"
@@ -651,8 +651,8 @@ def test_every_sg_count_the_settings_allow_fits_eevees_uniform_block():
     """EEVEE gives a material at most 64 KiB of uniforms; the group used to need 5388 bytes per SG (courtyard's IWEV
     materials rendered magenta from 8 SGs on). Now the most the settings allow (64 SGs, 16 IWEV SGs, 16 environment
     SGs) fits, and the presets' largest (16/16/16) uses a quarter of it."""
-    from shaders.bake_plan import BakeInputError
-    from shaders.node_group import UNIFORM_BLOCK_LIMIT, eevee_uniform_bytes
+    from sg_lightfield.shaders.bake_plan import BakeInputError
+    from sg_lightfield.shaders.node_group import UNIFORM_BLOCK_LIMIT, eevee_uniform_bytes
 
     with pytest.raises(BakeInputError):
         BakeSettings.from_preset("draft", sg_count=65)  # 64 is the most a bake can ask for
@@ -676,9 +676,9 @@ def test_eevee_compiles_the_largest_group_and_its_uniform_block_is_what_we_count
     import sys
     from pathlib import Path
 
-    from blender_addon.evaluate import shader_errors
-    from shaders.image_metrics import tonemap
-    from shaders.node_group import UNIFORM_BLOCK_LIMIT, eevee_uniform_bytes
+    from sg_lightfield.blender_addon.evaluate import shader_errors
+    from sg_lightfield.shaders.image_metrics import tonemap
+    from sg_lightfield.shaders.node_group import UNIFORM_BLOCK_LIMIT, eevee_uniform_bytes
 
     n, iwev, h, w = 16, 16, 4, 4
     rng = np.random.default_rng(2)
@@ -749,8 +749,8 @@ def test_eevee_compiles_the_largest_group_and_its_uniform_block_is_what_we_count
 def test_evaluation_cameras_see_the_baked_objects_from_inside_a_closed_room():
     """The views orbiting the baked objects stood outside room's walls and rendered black (half of every room
     score was a black frame); now each looks at the baked objects' centre with no other surface in between."""
-    from blender_addon.demo_scenes import build_demo_scene
-    from blender_addon.evaluate import _view_cameras
+    from sg_lightfield.blender_addon.demo_scenes import build_demo_scene
+    from sg_lightfield.blender_addon.evaluate import _view_cameras
 
     scene = build_demo_scene("demo:room")
     plan = build_plan(scene, BakeSettings.from_preset("draft"))

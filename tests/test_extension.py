@@ -10,7 +10,7 @@ REPO = Path(__file__).resolve().parent.parent
 
 
 def _blender_ext():
-    from headless.build_extension import blender_ext_script
+    from sg_lightfield.headless.build_extension import blender_ext_script
 
     script = blender_ext_script()
     sys.path.insert(0, str(script.parent))
@@ -33,7 +33,7 @@ def test_manifest_is_valid_for_blender_4_2_and_up():
 def test_register_unregister_twice_as_module():
     import bpy
 
-    import blender_addon
+    from sg_lightfield import blender_addon
 
     for _ in range(2):
         blender_addon.register()
@@ -50,7 +50,7 @@ def test_extension_zip_installs_and_toggles_twice(tmp_path):
     import addon_utils
     import bpy
 
-    from headless.build_extension import build
+    from sg_lightfield.headless.build_extension import build
 
     zip_path = build(tmp_path / "dist")
     names = set(__import__("zipfile").ZipFile(zip_path).namelist())
@@ -84,6 +84,7 @@ def test_numpy_side_imports_without_torch_or_bpy(module):
     import subprocess
 
     code = ("import sys; sys.modules['torch'] = None; sys.modules['bpy'] = None\n"
-            f"import importlib; importlib.import_module({module!r}); print('ok')")
+            "import sg_launch; sg_launch.load_package()\n"
+            f"import importlib; importlib.import_module('sg_lightfield.' + {module!r}); print('ok')")
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from tests.test_glossy_refit import rendered, scene
-from training import glossy_lobe_fit
-from training.glossy_lobe_fit import lobe_refit_steps
-from training.glossy_refit import atlas_neighbour_pairs, interpolated_shaded_error, refit_amplitudes, shaded_error
+from sg_lightfield.training import glossy_lobe_fit
+from sg_lightfield.training.glossy_lobe_fit import lobe_refit_steps
+from sg_lightfield.training.glossy_refit import atlas_neighbour_pairs, interpolated_shaded_error, refit_amplitudes, shaded_error
 
 
 def run(steps):

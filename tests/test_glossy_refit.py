@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 from scipy.optimize import nnls
 
-from shaders.octahedral import oct_decode, pixel_directions, pixel_solid_angles
-from shaders.sg_math import ggx_brdf_cos, sg_glossy
-from training.glossy_refit import (MAX_SUPERSAMPLING, encoding_error_split, hemisphere_views, lobe_supersampling,
+from sg_lightfield.shaders.octahedral import oct_decode, pixel_directions, pixel_solid_angles
+from sg_lightfield.shaders.sg_math import ggx_brdf_cos, sg_glossy
+from sg_lightfield.training.glossy_refit import (MAX_SUPERSAMPLING, encoding_error_split, hemisphere_views, lobe_supersampling,
                                    nonnegative_quadratic_minimum, pixel_integrated_weights, reflected_radiance,
                                    refit_amplitudes, refit_min_roughness, shaded_error)
 
@@ -76,9 +76,9 @@ def test_a_refit_that_raises_the_error_between_texels_is_reverted(monkeypatch):
     into a lobe the viewer sees. Without the ridge floor the refit blows the hidden lobe up (the stop-33 bake:
     1.02 -> 1317) while lowering the texels' own error; train_stage's guard measures between texels and brings the
     trained amplitudes back. With the floor the refit is kept."""
-    from shaders.texel_maps import CHANNEL, TEXEL_CHANNELS
-    from training import glossy_refit
-    from training.train_stage import interpolated_errors, revert_where_worse_between_texels
+    from sg_lightfield.shaders.texel_maps import CHANNEL, TEXEL_CHANNELS
+    from sg_lightfield.training import glossy_refit
+    from sg_lightfield.training.train_stage import interpolated_errors, revert_where_worse_between_texels
 
     rng = np.random.default_rng(4)
     texel_count = 8
@@ -240,8 +240,8 @@ def test_refit_stays_finite_for_lobes_below_the_horizon_and_extreme_sharpness():
 def test_refit_is_kept_per_material_only_where_it_lowers_the_held_out_error():
     """train_stage.keep_refit_where_better: a material whose refit raised its held-out error keeps the trained
     amplitudes, one whose refit lowered it takes the refit, texels of materials without an error are untouched."""
-    from shaders.texel_maps import CHANNEL, TEXEL_CHANNELS
-    from training.train_stage import keep_refit_where_better
+    from sg_lightfield.shaders.texel_maps import CHANNEL, TEXEL_CHANNELS
+    from sg_lightfield.training.train_stage import keep_refit_where_better
 
     atlas = np.zeros((2, 3, len(TEXEL_CHANNELS)), np.float32)
     atlas[..., CHANNEL["material_id"]] = [[1, 1, 2], [2, 3, 3]]

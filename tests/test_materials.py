@@ -7,13 +7,13 @@ import bmesh
 import numpy as np
 import pytest
 
-from blender_addon.apply import BAKE_RECORD_KEY, apply_stage, baked_groups, remove_bake
-from blender_addon.capture import capture
-from blender_addon.render import quiet_stdout, render_stage
-from blender_addon.scene_analysis import active_scene, analyse_material, build_plan, enable_nodes
-from shaders.bake_plan import BakeSettings
-from shaders.exr_io import read_exr
-from shaders.texel_maps import channels, read_texel_maps
+from sg_lightfield.blender_addon.apply import BAKE_RECORD_KEY, apply_stage, baked_groups, remove_bake
+from sg_lightfield.blender_addon.capture import capture
+from sg_lightfield.blender_addon.render import quiet_stdout, render_stage
+from sg_lightfield.blender_addon.scene_analysis import active_scene, analyse_material, build_plan, enable_nodes
+from sg_lightfield.shaders.bake_plan import BakeSettings
+from sg_lightfield.shaders.exr_io import read_exr
+from sg_lightfield.shaders.texel_maps import channels, read_texel_maps
 from tests.scene_helpers import base_name, mesh_fingerprint, mesh_object, scene_with
 
 DRAFT = BakeSettings.from_preset("draft")
@@ -187,7 +187,7 @@ def _bake(scene, tmp_path, **settings):
     plan = build_plan(scene, BakeSettings.from_preset("draft", **settings))
     capture(scene, plan, tmp_path)
     render_stage(scene, plan, tmp_path)
-    from training.train_stage import train_stage
+    from sg_lightfield.training.train_stage import train_stage
 
     train_stage(tmp_path, plan)
     apply_stage(scene, plan, tmp_path)
@@ -289,8 +289,8 @@ def test_node_group_with_per_pixel_inputs_matches_its_numpy_reference_in_cycles(
     """The parity test of tests/test_apply.py with the group's Normal, Roughness, F0 and Albedo fed per pixel by
     images (as a baked copy feeds them from the user's textures) instead of constants: each pixel's own inputs go
     into the numpy reference, from roughness 0 (floored) to 1 and from facing to grazing normals."""
-    from shaders.node_group import SGTextureLayout
-    from shaders.sg_shading import NumpyOps, encode_sharpness, shade
+    from sg_lightfield.shaders.node_group import SGTextureLayout
+    from sg_lightfield.shaders.sg_shading import NumpyOps, encode_sharpness, shade
     from tests.test_apply import parity_group, parity_scene
 
     n, h, w = 2, 8, 8
@@ -341,9 +341,9 @@ def test_the_materials_demo_bakes_keeps_every_look_and_compares_with_eevee_alone
     factor, brick emission) and the user's node group is copied, not edited; the evaluation scores EEVEE with the bake
     and EEVEE without it (ray tracing, baked probes) against one Cycles reference, with the three-way picture;
     Remove SG Bake restores every material and group exactly."""
-    from blender_addon.demo_scenes import build_demo_scene
-    from blender_addon.evaluate import evaluate_stage
-    from blender_addon.pipeline import BakeJob
+    from sg_lightfield.blender_addon.demo_scenes import build_demo_scene
+    from sg_lightfield.blender_addon.evaluate import evaluate_stage
+    from sg_lightfield.blender_addon.pipeline import BakeJob
 
     scene = build_demo_scene("materials")
     objects = {base_name(o.name): o for o in scene.objects}  # other tests may have made a "Floor" before

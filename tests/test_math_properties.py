@@ -7,9 +7,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from shaders import octahedral as octa
-from shaders import sg_math as m
-from training import sg_torch as t
+from sg_lightfield.shaders import octahedral as octa
+from sg_lightfield.shaders import sg_math as m
+from sg_lightfield.training import sg_torch as t
 
 SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -115,7 +115,7 @@ def test_float32_torch_matches_float64_numpy_for_moderate_lobes():
 def test_node_group_formula_is_the_numpy_reference_glossy():
     """sg_shading.shade (what the node group computes, run with NumpyOps) gives exactly sg_math.sg_glossy summed over
     the texel's SGs: the node formula is the one the quadrature checks hold to."""
-    from shaders.sg_shading import NumpyOps, decode_sharpness, encode_sharpness, shade
+    from sg_lightfield.shaders.sg_shading import NumpyOps, decode_sharpness, encode_sharpness, shade
 
     rng = np.random.default_rng(5)
     count, n = 400, 3
@@ -202,7 +202,7 @@ def test_half_float_roundtrip_of_sg_parameters(axis, lam, amp, view):
 
 
 def test_rmse_against_converged_removes_the_noise_of_a_two_half_reference():
-    from shaders.image_metrics import rmse, rmse_against_converged
+    from sg_lightfield.shaders.image_metrics import rmse, rmse_against_converged
 
     rng = np.random.default_rng(7)
     converged = rng.uniform(0.2, 0.8, (144, 256, 3))

@@ -6,8 +6,8 @@ they were adopted (error relative to the peak response, see check_math), so a re
 import numpy as np
 import pytest
 
-from shaders import check_math as cm
-from shaders import sg_math as m
+from sg_lightfield.shaders import check_math as cm
+from sg_lightfield.shaders import sg_math as m
 
 EXACT_TOL = 1e-9
 
@@ -128,9 +128,9 @@ def test_sh_glossy_lobe_matches_quadrature_of_the_warped_ndf(roughness, tol):
     lobes (band ratios, basis), and within the stated tolerance of the anisotropic warped lobes themselves for a
     positive sky, normal to grazing incidence (measured when adopted: 0.005 %, 0.4 %, 2.6 % at roughness 0.1, 0.3,
     0.5)."""
-    from shaders.quadrature import fibonacci_sphere
-    from shaders.sg_shading import NumpyOps, convolve_sh, mirror_warped_lobes, pixel_terms
-    from training.baselines import sh_basis
+    from sg_lightfield.shaders.quadrature import fibonacci_sphere
+    from sg_lightfield.shaders.sg_shading import NumpyOps, convolve_sh, mirror_warped_lobes, pixel_terms
+    from sg_lightfield.training.baselines import sh_basis
 
     d, w = fibonacci_sphere(400_000)
     sun = np.array([0.3, 0.5, 0.8]) / np.linalg.norm([0.3, 0.5, 0.8])
@@ -170,7 +170,7 @@ def test_local_warp_follows_the_lobe_above_the_mirror_direction_at_grazing():
     """At grazing view the true lobe widens across the plane of incidence above z (the warp's across-plane scale is
     2 v.h, and v.h grows away from z): an SG 30 degrees above z at n.v = 0.14, roughness 0.4, gets about half its
     reflection from the warp at z (measured 0.45x), and within 15 % of quadrature from the local warp."""
-    from shaders.quadrature import fibonacci_sphere
+    from sg_lightfield.shaders.quadrature import fibonacci_sphere
 
     d, w = fibonacci_sphere(1_000_000)
     n, v = np.array([0.0, 0.0, 1.0]), np.array([np.sqrt(1 - 0.14**2), 0.0, 0.14])
@@ -202,7 +202,7 @@ def _directional_albedo(roughness, ndotv, f0, n=300):
 
 
 def test_directional_albedo_quadrature_agrees_with_a_uniform_one_where_both_resolve_the_lobe():
-    from shaders.quadrature import fibonacci_sphere
+    from sg_lightfield.shaders.quadrature import fibonacci_sphere
 
     directions, weights = fibonacci_sphere(400_000)
     up = directions[:, 2] > 0
@@ -219,7 +219,7 @@ def test_directional_albedo_quadrature_agrees_with_a_uniform_one_where_both_reso
 def test_split_sum_albedo_matches_quadrature_from_mirror_to_rough_and_grazing():
     """The specular albedo F0 * scale + bias (sg_shading) that lightmapped materials shade with and that the
     diffuse of every baked dielectric is layered under, against the quadrature, roughness 0.05..1, n.v to grazing."""
-    from shaders.sg_shading import NumpyOps, split_sum_albedo
+    from sg_lightfield.shaders.sg_shading import NumpyOps, split_sum_albedo
 
     f0 = np.array([0.0, 0.04, 1.0])
     for roughness in (m.ROUGHNESS_MIN, 0.2, 0.45, 0.6, 0.75, 1.0):

@@ -8,10 +8,10 @@ import bpy  # noqa: I001  (bmesh exists only once bpy is imported)
 import bmesh
 import pytest
 
-from blender_addon.demo_scenes import build_demo_scene
-from blender_addon.scene_analysis import build_plan
-from headless.bake import parse_args, script_args
-from shaders.bake_plan import BakeInputError, BakePlan, BakeSettings
+from sg_lightfield.blender_addon.demo_scenes import build_demo_scene
+from sg_lightfield.blender_addon.scene_analysis import build_plan
+from sg_lightfield.headless.bake import parse_args, script_args
+from sg_lightfield.shaders.bake_plan import BakeInputError, BakePlan, BakeSettings
 from tests.scene_helpers import base_name, material as _material, mesh_object, scene_with as _scene_with
 
 REPO = Path(__file__).resolve().parent.parent
@@ -97,7 +97,7 @@ def test_no_glossy_material_and_no_material():
     assert plan.sg_objects == [] and plan.max_sg_count == 0
     assert list(map(base_name, plan.irradiance_only_materials)) == ["rough"]
     assert "no light-field SGs" in plan.summary() and "irradiance lightmap only" in "\n".join(plan.decisions())
-    with pytest.raises(BakeInputError, match="no object has a glossy material"):
+    with pytest.raises(BakeInputError, match="no object or instance has a glossy material"):
         build_plan(scene, BakeSettings.from_preset("draft", rough_materials="renderer"))
 
 
@@ -209,7 +209,7 @@ def test_cli_bad_input_is_one_line_and_nonzero(tmp_path, args, message):
     (["--encoder-trainings", "17"], "--encoder-trainings takes 1 to 16"),
 ])
 def test_bench_checks_the_encoder_settings_before_any_work(tmp_path, capsys, args, message):
-    from headless.bench import main
+    from sg_lightfield.headless.bench import main
 
     with pytest.raises(SystemExit) as stopped:
         main(["--out", str(tmp_path / "bench"), "--sections", "encoders", *args])
@@ -218,7 +218,7 @@ def test_bench_checks_the_encoder_settings_before_any_work(tmp_path, capsys, arg
 
 
 def test_the_bench_discards_a_demo_scene_so_the_next_one_built_gets_the_same_names():
-    from headless.bench import _discard_scene
+    from sg_lightfield.headless.bench import _discard_scene
 
     def names(scene):
         objects = sorted(o.name for o in scene.objects)
@@ -235,7 +235,7 @@ def test_the_bench_discards_a_demo_scene_so_the_next_one_built_gets_the_same_nam
 
 
 def test_cli_device_cuda_without_an_optix_gpu_stops_with_one_error_line(tmp_path):
-    from blender_addon.render import optix_devices
+    from sg_lightfield.blender_addon.render import optix_devices
 
     if optix_devices():
         pytest.skip("an OptiX GPU is here")
@@ -261,7 +261,7 @@ def test_cli_empty_blend_is_one_line_and_nonzero(tmp_path):
 def test_cli_eta_counts_only_the_current_stage_progress(monkeypatch, capsys):
     """The bar's fraction covers the whole bake: a stage that starts at 50 % and reaches 60 % in 10 s has 40 s
     left, not the 6.7 s that dividing by the whole bake's fraction would claim."""
-    from headless import bake
+    from sg_lightfield.headless import bake
 
     clock = iter([100.0, 110.0])
     monkeypatch.setattr(bake.time, "monotonic", lambda: next(clock))
@@ -277,7 +277,7 @@ def test_the_bake_eta_replays_the_room_production_bake(monkeypatch, tmp_path):
     render's pixel samples, and 6560 s of render, train, apply and evaluate were left. The job's ETA then is its
     render rate for the render's rest plus the plan's estimates of the later stages: within 10 % of what was left,
     where one rate for the whole bar said 14872 s. Between tiles it counts down."""
-    from blender_addon import pipeline
+    from sg_lightfield.blender_addon import pipeline
 
     clock = [0.0]
     monkeypatch.setattr(pipeline.time, "monotonic", lambda: clock[0])

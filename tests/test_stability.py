@@ -3,16 +3,16 @@ import bpy  # noqa: I001
 import numpy as np
 import pytest
 
-from blender_addon.apply import remove_bake
-from blender_addon.demo_scenes import STABILITY_VARIANTS, build_stability_variant
-from blender_addon.pipeline import BakeJob
-from blender_addon.render import quiet_stdout
-from blender_addon.scene_analysis import active_scene
-from shaders.bake_plan import BakeSettings
-from shaders.exr_io import read_exr
-from shaders.lightfield_tiles import read_images
-from shaders.sg_textures import read_sg_texture
-from shaders.texel_maps import read_texel_maps
+from sg_lightfield.blender_addon.apply import remove_bake
+from sg_lightfield.blender_addon.demo_scenes import STABILITY_VARIANTS, build_stability_variant
+from sg_lightfield.blender_addon.pipeline import BakeJob
+from sg_lightfield.blender_addon.render import quiet_stdout
+from sg_lightfield.blender_addon.scene_analysis import active_scene
+from sg_lightfield.shaders.bake_plan import BakeSettings
+from sg_lightfield.shaders.exr_io import read_exr
+from sg_lightfield.shaders.lightfield_tiles import read_images
+from sg_lightfield.shaders.sg_textures import read_sg_texture
+from sg_lightfield.shaders.texel_maps import read_texel_maps
 
 pytestmark = pytest.mark.slow
 

@@ -3,10 +3,10 @@ import numpy as np
 import pytest
 import torch
 
-from shaders.octahedral import oct_decode
-from shaders.sg_math import AMPLITUDE_MAX_HALF, SHARPNESS_MAX, SHARPNESS_MIN
-from shaders.sg_textures import read_sg_texture, write_sg_texture
-from training.sg_fit import (LightFieldData, TrainConfig, Trainer, blend_parameters, constrain, error_metrics,
+from sg_lightfield.shaders.octahedral import oct_decode
+from sg_lightfield.shaders.sg_math import AMPLITUDE_MAX_HALF, SHARPNESS_MAX, SHARPNESS_MIN
+from sg_lightfield.shaders.sg_textures import read_sg_texture, write_sg_texture
+from sg_lightfield.training.sg_fit import (LightFieldData, TrainConfig, Trainer, blend_parameters, constrain, error_metrics,
                              midpoint_parameters, reconstruct)
 
 R = 16
@@ -203,8 +203,8 @@ def test_sg_texture_round_trip_keeps_hdr_and_dilates_gutters(tmp_path):
 
 
 def test_sh_texture_round_trip_keeps_signs_and_is_told_apart_from_sg_textures(tmp_path):
-    from shaders.bake_plan import BakeInputError
-    from shaders.sg_textures import is_sh_texture, read_sh_texture, write_sh_texture
+    from sg_lightfield.shaders.bake_plan import BakeInputError
+    from sg_lightfield.shaders.sg_textures import is_sh_texture, read_sh_texture, write_sh_texture
 
     texels = np.array([[1, 1], [1, 2], [2, 1]])
     coefficients = np.random.default_rng(1).normal(size=(3, 9, 3))
@@ -223,8 +223,8 @@ def test_sh_texture_round_trip_keeps_signs_and_is_told_apart_from_sg_textures(tm
 def test_energy_kept_measures_the_fit_against_the_render_over_the_upper_hemisphere():
     """Half the rendered energy in red and green and a third in blue: the median is a half; a black texel does not
     count; directions below the horizon do not count."""
-    from shaders.env_visibility import above_horizon_fraction
-    from training.sg_fit import energy_kept, reconstruct
+    from sg_lightfield.shaders.env_visibility import above_horizon_fraction
+    from sg_lightfield.training.sg_fit import energy_kept, reconstruct
 
     normals = np.tile([0.0, 0.0, 1.0], (6, 1))
     axis = np.tile(np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]]), (6, 1, 1))
@@ -238,8 +238,8 @@ def test_energy_kept_measures_the_fit_against_the_render_over_the_upper_hemisphe
 
 
 def test_baselines_fit_what_they_can_represent():
-    from training.baselines import eval_fixed_sg, eval_sh, fit_fixed_sg, fit_sh_l2, sh_basis
-    from shaders.octahedral import pixel_directions
+    from sg_lightfield.training.baselines import eval_fixed_sg, eval_sh, fit_fixed_sg, fit_sh_l2, sh_basis
+    from sg_lightfield.shaders.octahedral import pixel_directions
 
     normals = np.array([[0.0, 0.0, 1.0]] * 4)
     d = pixel_directions(R)
@@ -283,11 +283,11 @@ def test_plateau_waits_for_enough_optimiser_steps_then_stops():
 def test_glossy_error_sees_what_a_surface_of_that_roughness_reflects():
     """Zero for the truth, the scale error for a scaled prediction, and pixel-scale detail matters to a mirror-like
     surface but hardly to a rough one (its GGX lobe averages it away)."""
-    from training.sg_fit import glossy_error
+    from sg_lightfield.training.sg_fit import glossy_error
 
     data, _ = synthetic(8)
     full, normals = data.images.numpy().astype(np.float64), data.normals.numpy()
-    from shaders.env_visibility import above_horizon_fraction
+    from sg_lightfield.shaders.env_visibility import above_horizon_fraction
 
     images = full * above_horizon_fraction(normals, R).reshape(full.shape[:3])[..., None]  # rendered: cut at the horizon
     assert glossy_error(full, images, normals, 0.3) < 1e-9  # the prediction is cut the same way

@@ -11,8 +11,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import nnls
 
-from shaders.octahedral import pixel_directions, pixel_solid_angles
-from shaders.quadrature import fibonacci_sphere
+from ..shaders.octahedral import pixel_directions, pixel_solid_angles
+from ..shaders.quadrature import fibonacci_sphere
 
 FIXED_SG_SHARPNESS_CANDIDATES = (1.0, 2.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0, 32.0)
 

@@ -18,9 +18,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from shaders.sg_math import SHARPNESS_MAX, SHARPNESS_MIN
-from training import sg_torch
-from training.glossy_refit import (REFIT_BATCH, REFIT_LOBE_PIXELS, atlas_neighbour_pairs, hemisphere_views,
+from ..shaders.sg_math import SHARPNESS_MAX, SHARPNESS_MIN
+from . import sg_torch
+from .glossy_refit import (REFIT_BATCH, REFIT_LOBE_PIXELS, atlas_neighbour_pairs, hemisphere_views,
                                    reflected_radiance, refit_min_roughness)
 
 LOBE_REFIT_RATE = 0.02  # Adam's step on unit-axis components, log sharpness and log amplitude

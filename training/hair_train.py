@@ -22,12 +22,15 @@ from pathlib import Path
 
 import torch
 
-if __package__ in (None, ""):
+if __name__ == "__main__" and __package__ in (None, "", "training"):  # started as a file or with -m
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+    from sg_launch import run_in_package
 
-from shaders import hair_pairs  # noqa: E402
-from shaders.atomic import atomic_output  # noqa: E402
-from training.hair_unet import (CONFIGS, LOSS_NORMS, HairNetConfig, HairUNet, export_onnx, hair_loss,  # noqa: E402
+    run_in_package(__file__)
+
+from ..shaders import hair_pairs  # noqa: E402
+from ..shaders.atomic import atomic_output  # noqa: E402
+from .hair_unet import (CONFIGS, LOSS_NORMS, HairNetConfig, HairUNet, export_onnx, hair_loss,  # noqa: E402
                                  random_looks)
 
 CROP = 64
@@ -175,7 +178,7 @@ def train(data: Path, config_name: str, budget_s: float, work: Path, resume: boo
 
 
 def main(argv=None) -> int:
-    from headless.bake import Reporter
+    from ..headless.bake import Reporter
 
     p = argparse.ArgumentParser(prog="python -m training.hair_train", description=__doc__.splitlines()[0])
     p.add_argument("--data", type=Path, required=True, help="the train/ directory of a hair dataset")

@@ -21,8 +21,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from shaders.hair_raster import EVALUATION_LOOK
-from training.flip_loss import flip_loss
+from ..shaders.hair_raster import EVALUATION_LOOK
+from .flip_loss import flip_loss
 
 FEATURES_PER_SAMPLE = 6  # colour factor, highlight, alpha, depth, tangent x, tangent y
 OUTPUTS = 3  # colour factor, highlight, alpha
@@ -223,10 +223,7 @@ def export_onnx(model: HairUNet, path, height: int = 64, width: int = 64, opset:
     Uses torch's TorchScript exporter: the torch.export one needs onnxscript, which nothing else needs."""
     import onnx
 
-    try:
-        from ..shaders.atomic import atomic_output
-    except ImportError:
-        from shaders.atomic import atomic_output
+    from ..shaders.atomic import atomic_output
     model.eval()
     dummy = torch.zeros((1, model.config.in_channels, height, width))
     with atomic_output(path, suffix=".tmp.onnx") as tmp:

@@ -26,11 +26,11 @@ import numpy as np
 import torch
 from torch import nn
 
-from shaders.atomic import atomic_output
-from shaders.octahedral import pixel_directions
-from shaders.octahedral import pixel_solid_angles as exact_solid_angles
-from shaders.sg_math import SHARPNESS_MAX, SHARPNESS_MIN, midpoint_parameters, unit_midpoint  # noqa: F401
-from training.sg_torch import oct_decode, pixel_solid_angles, safe_normalize, sg_sum_eval
+from ..shaders.atomic import atomic_output
+from ..shaders.octahedral import pixel_directions
+from ..shaders.octahedral import pixel_solid_angles as exact_solid_angles
+from ..shaders.sg_math import SHARPNESS_MAX, SHARPNESS_MIN, midpoint_parameters, unit_midpoint  # noqa: F401
+from .sg_torch import oct_decode, pixel_solid_angles, safe_normalize, sg_sum_eval
 
 LOG_SHARPNESS_MIN, LOG_SHARPNESS_MAX = math.log(SHARPNESS_MIN), math.log(SHARPNESS_MAX)
 
@@ -128,7 +128,7 @@ INITIAL_AMPLITUDE_MIN, INITIAL_AMPLITUDE_MAX = 1e-4, 0.3
 def initial_raw(sg_count: int, channels: int = 3, amplitude_fraction: float = INITIAL_AMPLITUDE_MAX) -> torch.Tensor:
     """Raw parameters (N, 4 + C) both optimisers start from: axes on a Fibonacci sphere, sharpness N/2 (lobes that
     tile the sphere), amplitudes `amplitude_fraction` x the data scale."""
-    from shaders.quadrature import fibonacci_sphere
+    from ..shaders.quadrature import fibonacci_sphere
 
     axes = torch.tensor(fibonacci_sphere(sg_count)[0], dtype=torch.float32)
     fraction = (math.log(max(sg_count / 2.0, 1.0)) - LOG_SHARPNESS_MIN) / (LOG_SHARPNESS_MAX - LOG_SHARPNESS_MIN)
@@ -495,7 +495,7 @@ def energy_kept(prediction, target, normals) -> float:
     """Median over lit texels and channels of the SG reconstruction's energy over the texel's upper hemisphere
     divided by the rendered light field's. Below 1 is the log-L2 loss's bias: it fits E[log(1 + L)] of noisy
     renders, which is below log(1 + E[L]) (Jensen), so sparse bright pixels (thin emitters) lose energy."""
-    from shaders.env_visibility import above_horizon_fraction
+    from ..shaders.env_visibility import above_horizon_fraction
 
     resolution = target.shape[1]
     weight = (exact_solid_angles(resolution).reshape(1, -1) * above_horizon_fraction(normals, resolution))
@@ -525,7 +525,7 @@ def glossy_error(prediction: np.ndarray, target: np.ndarray, normals: np.ndarray
     """Relative RMSE of the reflected radiance a surface of `roughness` sees (both light fields prefiltered by its
     GGX lobe, the prediction cut at the horizon as the render cuts the target), over reflection directions above
     each texel's horizon, weighted by solid angle. The error that decides how many SGs a material needs."""
-    from shaders.env_visibility import above_horizon_fraction, glossy_prefilter
+    from ..shaders.env_visibility import above_horizon_fraction, glossy_prefilter
 
     resolution = target.shape[1]
     normals = np.asarray(normals, np.float64)

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from shaders.sg_math import (  # the one place the clamps are defined
+from ..shaders.sg_math import (  # the one place the clamps are defined
     AMPLITUDE_MAX_HALF,
     AXIS_EPS,
     CLAMPED_COSINE_LEGENDRE,
@@ -313,7 +313,7 @@ def oct_decode(uv):
 
 
 def pixel_solid_angles(resolution: int, dtype=torch.float32, device=None):
-    from shaders.octahedral import pixel_solid_angles as exact
+    from ..shaders.octahedral import pixel_solid_angles as exact
 
     return torch.tensor(np.array(exact(resolution)), dtype=dtype, device=device)
 

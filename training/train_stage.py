@@ -16,15 +16,18 @@ from pathlib import Path
 
 import numpy as np
 
-if __package__ in (None, ""):
+if __name__ == "__main__" and __package__ in (None, "", "training"):  # started as a file or with -m
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+    from sg_launch import run_in_package
 
-from shaders.bake_plan import BakeCancelled, BakeInputError, BakePlan, drive  # noqa: E402
-from shaders.bake_report import save_png, update_report  # noqa: E402
-from shaders.env_visibility import above_horizon_fraction  # noqa: E402
-from shaders.lightfield_tiles import preview_mosaic, read_images  # noqa: E402
-from shaders.sg_textures import bytes_per_texel, sg_texture_path, write_sg_texture, write_sh_texture  # noqa: E402
-from shaders.texel_maps import channels, read_texel_maps, texels_of_objects  # noqa: E402
+    run_in_package(__file__)
+
+from ..shaders.bake_plan import BakeCancelled, BakeInputError, BakePlan, drive  # noqa: E402
+from ..shaders.bake_report import save_png, update_report  # noqa: E402
+from ..shaders.env_visibility import above_horizon_fraction  # noqa: E402
+from ..shaders.lightfield_tiles import preview_mosaic, read_images  # noqa: E402
+from ..shaders.sg_textures import bytes_per_texel, sg_texture_path, write_sg_texture, write_sh_texture  # noqa: E402
+from ..shaders.texel_maps import channels, read_texel_maps, texels_of_objects  # noqa: E402
 
 
 @dataclass
@@ -46,8 +49,8 @@ ENV_FIT_SECONDS = 10.0
 def fit_environment_sgs(out_dir: Path, plan_hash: str, device: str = "cpu") -> dict:
     """The environment (env_radiance.exr, the whole sphere) as ENV_SG_COUNT global SGs: the node group convolves
     them with each texel's warped NDF and multiplies by the texel's W_E. Written to DIR/env_sgs.json."""
-    from shaders.exr_io import read_exr
-    from training.sg_fit import LightFieldData, TrainConfig, Trainer, error_metrics, reconstruct
+    from ..shaders.exr_io import read_exr
+    from .sg_fit import LightFieldData, TrainConfig, Trainer, error_metrics, reconstruct
 
     radiance, _, _ = read_exr(out_dir / "env_radiance.exr", channels=["R", "G", "B"])
     data = LightFieldData.from_numpy(radiance[None], np.zeros((1, 3)), device=device)  # zero normal: whole sphere
@@ -60,7 +63,7 @@ def fit_environment_sgs(out_dir: Path, plan_hash: str, device: str = "cpu") -> d
     data_out = {"plan_hash": plan_hash, "sgs": [[a.tolist(), float(s), m.tolist()]
                                                 for a, s, m in zip(axis, sharpness, amplitude)],
                 "metrics": {k: round(v, 6) for k, v in metrics.items()}}
-    from shaders.bake_plan import write_json_atomic
+    from ..shaders.bake_plan import write_json_atomic
 
     write_json_atomic(out_dir / ENV_SGS_FILE, data_out)
     return data_out
@@ -84,7 +87,7 @@ def texel_lobe_counts(atlas, texel_info: dict, texels: np.ndarray, plan: BakePla
     """(T,) SGs each texel may use: its material's N from the plan (`most` for texels of materials that get no
     SGs: they sit beside glossy texels and bilinear lookups blend them in); a textured roughness's texels get what
     their measured roughness needs (auto_sg_count), up to the material's N."""
-    from shaders.bake_plan import auto_sg_count
+    from ..shaders.bake_plan import auto_sg_count
 
     glossy = [m for o in plan.baked_objects for m in o.materials if m.glossy]
     counts = _per_texel(atlas, texel_info, texels, {m.name: m.sg_count for m in glossy}, most, np.int64)
@@ -100,7 +103,7 @@ def texel_lobe_counts(atlas, texel_info: dict, texels: np.ndarray, plan: BakePla
 def _error_members(atlas, texel_info: dict, texels, roughness, resolution: int, only=None):
     """Material name -> indices of its texels rough enough for the refits (glossy_refit.refit_min_roughness:
     sharper lobes see one pixel's constant radiance); of the materials named in `only` if given."""
-    from training.glossy_refit import refit_min_roughness
+    from .glossy_refit import refit_min_roughness
 
     material_ids = texel_material_ids(atlas, texels)
     resolved = roughness >= refit_min_roughness(resolution)
@@ -120,7 +123,7 @@ def shaded_errors(images, normals, axis, sharpness, amplitude, atlas, texel_info
     the rendered light fields, on views the refit never fits (glossy_refit.shaded_error), over up to
     ERROR_TEXELS_PER_MATERIAL of the material's texels rough enough for the quadrature (of the materials named in
     `only` if given)."""
-    from training.glossy_refit import ERROR_TEXELS_PER_MATERIAL, shaded_error
+    from .glossy_refit import ERROR_TEXELS_PER_MATERIAL, shaded_error
 
     errors = {}
     for name, members in _error_members(atlas, texel_info, texels, roughness, images.shape[1], only).items():
@@ -135,7 +138,7 @@ def interpolated_errors(images, normals, axis, sharpness, amplitude, atlas, texe
     """Material name -> the same error halfway between atlas neighbours, with the SGs blended as the node group's
     bilinear lookup blends them (glossy_refit.interpolated_shaded_error), over up to ERROR_TEXELS_PER_MATERIAL
     neighbour pairs of the material's texels (of the materials named in `only` if given)."""
-    from training.glossy_refit import ERROR_TEXELS_PER_MATERIAL, atlas_neighbour_pairs, interpolated_shaded_error
+    from .glossy_refit import ERROR_TEXELS_PER_MATERIAL, atlas_neighbour_pairs, interpolated_shaded_error
 
     errors = {}
     for name, members in _error_members(atlas, texel_info, texels, roughness, images.shape[1], only).items():
@@ -232,10 +235,10 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
     the CNN's initial weights and batch order (its own checkpoint): the benchmark's spread between trainings."""
     import torch
 
-    from training.baselines import bytes_per_texel_fixed_sg, bytes_per_texel_sh_l2, eval_sh, fit_fixed_sg, fit_sh_l2
-    from training.glossy_lobe_fit import LOBE_REFIT_GUARD_TOLERANCE, lobe_refit_min_roughness, lobe_refit_steps
-    from training.glossy_refit import refit_min_roughness, refit_steps
-    from training.sg_fit import (LightFieldData, TrainConfig, Trainer, energy_kept, error_metrics,
+    from .baselines import bytes_per_texel_fixed_sg, bytes_per_texel_sh_l2, eval_sh, fit_fixed_sg, fit_sh_l2
+    from .glossy_lobe_fit import LOBE_REFIT_GUARD_TOLERANCE, lobe_refit_min_roughness, lobe_refit_steps
+    from .glossy_refit import refit_min_roughness, refit_steps
+    from .sg_fit import (LightFieldData, TrainConfig, Trainer, energy_kept, error_metrics,
                                  midpoint_parameters, pair_indices, reconstruct, unit_midpoint)
 
     start = time.perf_counter()
