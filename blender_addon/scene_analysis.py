@@ -68,16 +68,17 @@ def unbaked(material):
     return material
 
 
-def analyse_material(material, settings: BakeSettings) -> MaterialPlan:
+def analyse_material(material, settings: BakeSettings, surface=None) -> MaterialPlan:
     """The plan of one material from its surface (surface_shaders.analyse_surface): baked BSDFs get SGs (glossy),
     an irradiance lightmap (rough dielectrics, Diffuse BSDFs) or nothing; a surface with anything the bake does not
     model is left to the renderer with the reason. A textured roughness makes the material glossy here; its SGs per
-    texel follow the roughness the capture stage measures over the lightmap (capture.measure_surfaces)."""
+    texel follow the roughness the capture stage measures over the lightmap (capture.measure_surfaces). `surface`:
+    the material's analyse_surface when the caller has it already."""
     material = unbaked(material)
     name = material.name if material else "(no material)"
     if material is None:
         return MaterialPlan(name, 1.0, 0.0, False, 0, "no material: Blender renders it diffuse grey")
-    surface = analyse_surface(material)
+    surface = analyse_surface(material) if surface is None else surface
     if surface.renderer_reasons:
         return MaterialPlan(name, 1.0, 0.0, False, 0,
                             "left to the renderer: " + "; ".join(surface.renderer_reasons))
@@ -257,11 +258,13 @@ def bake_targets(scene, object_plans, depsgraph) -> list:
 
 def _instance_plans(instancer, instanced: Instanced, settings, depsgraph, surfaces_of) -> list:
     """One ObjectPlan per instance of a supported instancer: its source's materials, its area under its matrix."""
-    plans = []
+    plans, triangles = [], {}
     for k, (name, (source, matrix)) in enumerate(zip(instance_targets(instancer, instanced), instanced.entries)):
         obj = bpy.data.objects[source]
         _, mat_plans = surfaces_of(obj)
-        area = _world_area(obj, depsgraph, matrix)
+        if source not in triangles:  # every instance of an object shares its evaluated surface
+            triangles[source] = _evaluated_triangles(obj, depsgraph)
+        area = _area_under(matrix, *triangles[source])
         glossy = [mp.name for mp in mat_plans if mp.glossy]
         lightmapped = [mp.name for mp in mat_plans if mp.irradiance_only]
         baked = bool(glossy or lightmapped) and area > 0 and obj.type in MODIFIER_TYPES
@@ -280,10 +283,6 @@ def _why_no_surface(obj) -> str:
     if obj.type == "FONT":
         return "no surface: text without characters renders nothing"
     return "no faces with area"
-
-
-def _is_emissive(material) -> bool:
-    return material is not None and material.node_tree is not None and analyse_surface(material).emissive
 
 
 def loop_triangle_arrays(mesh):
@@ -311,17 +310,26 @@ def triangle_areas(points, verts):
     return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
 
 
-def _world_area(obj, depsgraph, matrix=None) -> float:
+def _evaluated_triangles(obj, depsgraph):
+    """(vertex coordinates (V, 3), triangles (T, 3)) of `obj`'s evaluated surface in object space; (None, None)
+    when it has no faces."""
     evaluated = obj.evaluated_get(depsgraph)
     mesh = evaluated.to_mesh()
     try:
         if mesh is None or len(mesh.polygons) == 0:
-            return 0.0
+            return None, None
         _, verts, _, coords = loop_triangle_arrays(mesh)
-        return float(triangle_areas(transform_points(obj.matrix_world if matrix is None else matrix, coords),
-                                    verts).sum())
+        return coords, verts
     finally:
         evaluated.to_mesh_clear()
+
+
+def _area_under(matrix, coords, verts) -> float:
+    return 0.0 if coords is None else float(triangle_areas(transform_points(matrix, coords), verts).sum())
+
+
+def _world_area(obj, depsgraph) -> float:
+    return _area_under(obj.matrix_world, *_evaluated_triangles(obj, depsgraph))
 
 
 def _uniform_colour_environment(color, black_reason: str) -> EnvironmentPlan:
@@ -434,20 +442,23 @@ def _build_plan(scene, settings: BakeSettings, depsgraph) -> BakePlan:
         raise BakeInputError("nothing to bake: the scene has no mesh, curve or text objects"
                              + (f" (only {', '.join(kinds)})" if kinds else " (it is empty)"))
     objects, emissive, warnings = [], [], []
-    analysed = {}
+    analysed, emits = {}, {}  # per material: its plan, and whether its surface emits (each surface analysed once)
 
     def surfaces_of(obj):
         mats = [slot.material for slot in obj.material_slots] or [None]
         for m in mats:
             if m not in analysed:
-                analysed[m] = analyse_material(m, settings)
+                original = unbaked(m)
+                surface = analyse_surface(original) if original is not None else None
+                analysed[m] = analyse_material(m, settings, surface)
+                emits[m] = surface is not None and original.node_tree is not None and surface.emissive
         return mats, [analysed[m] for m in mats]
 
     every_instancer = instances_by_instancer(depsgraph)
     instances = dict(every_instancer)  # the ones not yet in the plan
     for obj in shapes:
         mats, mat_plans = surfaces_of(obj)
-        if any(_is_emissive(unbaked(m)) for m in mats if m is not None):
+        if any(emits[m] for m in mats):
             emissive.append(obj.name)
         geometry = geometry_description(obj)
         instanced = instances.pop(obj.name, None)
@@ -483,8 +494,7 @@ def _build_plan(scene, settings: BakeSettings, depsgraph) -> BakePlan:
             objects += _instance_plans(name, instanced, settings, depsgraph, surfaces_of)
     glossy_instances = sorted({source for o in every_instancer.values() if o.unsupported() for source in o.sources
                                if bpy.data.objects.get(source) is not None and any(
-                                   analyse_material(s.material, settings).glossy
-                                   for s in bpy.data.objects[source].material_slots if s.material is not None)})
+                                   plan.glossy for plan in surfaces_of(bpy.data.objects[source])[1])})
     for obj in objects:
         instancers = sorted(name for name, o in every_instancer.items() if o.unsupported()
                             and obj.bake_lightfield and obj.name in o.sources and name != obj.name)
