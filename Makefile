@@ -45,10 +45,10 @@ bench: $(STAMP)
 # does not give the same strands twice, so a rerun reproduces the dataset's statistics, not its pixels.
 hair-model: $(STAMP)
 	$(PY) headless/hair_dataset.py --out $(HAIR_DATA)
-	$(PY) -m training.hair_train --data $(HAIR_DATA)/train --config base+blend --flip-weight 0.3 --steps 21000 --out models/hair_base.onnx
-	$(PY) -m training.hair_train --data $(HAIR_DATA)/train --config large+blend --flip-weight 0.3 --steps 21000 --out models/hair_large.onnx
-	$(PY) -m training.hair_train --data $(HAIR_DATA)/train --config base+blend@2spp --flip-weight 0.3 --steps 4044 --out models/hair_base@2spp.onnx
-	$(PY) -m training.hair_train --data $(HAIR_DATA)/train --config base+blend@1spp --flip-weight 0.3 --steps 5057 --out models/hair_base@1spp.onnx
+	$(PY) -m hair.train --data $(HAIR_DATA)/train --config base+blend --flip-weight 0.3 --steps 21000 --out models/hair_base.onnx
+	$(PY) -m hair.train --data $(HAIR_DATA)/train --config large+blend --flip-weight 0.3 --steps 21000 --out models/hair_large.onnx
+	$(PY) -m hair.train --data $(HAIR_DATA)/train --config base+blend@2spp --flip-weight 0.3 --steps 4044 --out models/hair_base@2spp.onnx
+	$(PY) -m hair.train --data $(HAIR_DATA)/train --config base+blend@1spp --flip-weight 0.3 --steps 5057 --out models/hair_base@1spp.onnx
 
 extension: $(STAMP)
 	$(PY) -m headless.build_extension --out dist

@@ -1,6 +1,6 @@
 """How the repository's code is started outside Blender's extension system: as the package ``sg_lightfield``.
 
-Inside the package every module imports its siblings relatively (``from ..shaders.bake_plan import ...``): that is
+Inside the package every module imports its siblings relatively (``from ..bake_directory.bake_plan import ...``): that is
 the one import mechanism, and it is what Blender does for the installed extension (``bl_ext.<repo>.sg_lightfield``).
 Entry points run as files (``python headless/bake.py``, ``blender -b -P headless/bake.py``), with ``python -m
 headless.bench`` or by the add-on's training worker start here; so do the tests (their conftest).

@@ -20,18 +20,18 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from ..shaders.bake_plan import BakeInputError
-from ..shaders.bake_report import update_report
-from ..shaders.exr_io import write_exr
-from ..shaders.lightfield_tiles import read_images
+from ..bake_directory.bake_plan import BakeInputError
+from ..bake_directory.bake_report import update_report
+from ..bake_directory.exr_io import write_exr
+from ..bake_directory.lightfield_tiles import read_images
 from ..shaders.node_group import (GROUP_NAME, UNIFORM_BLOCK_LIMIT, VERSION_KEY, SGTextureLayout, build_node_group,
                                   eevee_uniform_bytes, flattened_node_count, material_output)
 from ..shaders.octahedral import pixel_directions, pixel_solid_angles
 from ..shaders.sg_math import CLAMPED_COSINE_LEGENDRE, sg_irradiance
 from ..shaders.sg_shading import SH_L2_BAND, NumpyOps, encode_sharpness, sh_l2_basis
-from ..shaders.sg_textures import (is_sh_texture, pack_tiles, read_sg_texture, read_sh_texture, scatter_dilated,
+from ..bake_directory.sg_textures import (is_sh_texture, pack_tiles, read_sg_texture, read_sh_texture, scatter_dilated,
                                sg_texture_path)
-from ..shaders.texel_maps import channels, read_texel_maps, smooth_over_texels, texels_of_objects
+from ..bake_directory.texel_maps import channels, read_texel_maps, smooth_over_texels, texels_of_objects
 from . import lightmap_modifier
 from .capture import BLOCK_KEY, LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, remove_lightmap_uvs
 from .surface_shaders import (COPY_KEY, COPY_SUFFIX, LeafInputs, copy_material, remove_unused_group_copies,

@@ -35,13 +35,13 @@ import numpy as np
 from mathutils import Vector
 from mathutils.bvhtree import BVHTree
 
-from ..shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
-from ..shaders.bake_report import update_report
-from ..shaders.exr_io import write_exr
-from ..shaders.texel_maps import (CAPTURE_PICTURES, CHANNEL, FLAG_BURIED, FLAG_CENTRE_INSIDE, FLAG_COVERED,
+from ..bake_directory.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
+from ..bake_directory.bake_report import update_report
+from ..bake_directory.exr_io import write_exr
+from ..bake_directory.texel_maps import (CAPTURE_PICTURES, CHANNEL, FLAG_BURIED, FLAG_CENTRE_INSIDE, FLAG_COVERED,
                                   FLAG_GUTTER, FLAG_PUSHED_OUT, TEXEL_CHANNELS, TEXELS_FILE, TEXELS_JSON,
                                   save_capture_pictures)
-from ..shaders.texel_raster import centre_overlap_count, dilate, rasterize, shelf_pack, signed_areas
+from ..bake_directory.texel_raster import centre_overlap_count, dilate, rasterize, shelf_pack, signed_areas
 from .scene_analysis import (active_scene, bake_targets, loop_triangle_arrays, principled_surface,
                              transform_points, triangle_areas, unbaked)
 from . import lightmap_modifier

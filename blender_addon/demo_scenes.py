@@ -23,7 +23,7 @@ import bmesh
 import bpy
 from mathutils import Matrix, Vector
 
-from ..shaders.bake_plan import BakeInputError
+from ..bake_directory.bake_plan import BakeInputError
 from .scene_analysis import empty_node_material, enable_nodes
 
 DEMO_SCENES = ("spheres", "room", "courtyard", "materials", "geometry", "hair")

@@ -6,7 +6,7 @@ reference's noise RMSE is RMSE(half A, half B) / 2, reported next to the bake's 
 reference is good enough (noise well below the error). Test: the same views with the baked materials, which
 Cycles evaluates through the same node group EEVEE uses (emission only), at the same samples as the reference
 because surfaces the bake leaves alone (rough ones) are still path traced.
-Metrics on tone-mapped images (shaders/image_metrics.py): RMSE, PSNR, FLIP; pictures reference | bake | FLIP.
+Metrics on tone-mapped images (bake_directory/image_metrics.py): RMSE, PSNR, FLIP; pictures reference | bake | FLIP.
 EEVEE, the engine the bake is for, renders the same views in a separate process (blender_addon/eevee_worker.py;
 it needs an OpenGL context), with ray tracing and baked light probes lighting what the bake leaves to the renderer:
 its error against the reference, its difference from Cycles' evaluation of the same nodes, its first-render time
@@ -33,11 +33,11 @@ import bpy
 import numpy as np
 from mathutils import Vector
 
-from ..shaders.bake_plan import BakeInputError
-from ..shaders.bake_report import save_png, update_report
-from ..shaders.image_metrics import flip, heat, psnr, rmse, tonemap
+from ..bake_directory.bake_plan import BakeInputError
+from ..bake_directory.bake_report import save_png, update_report
+from ..bake_directory.image_metrics import flip, heat, psnr, rmse, tonemap
 from .apply import BAKE_RECORD_KEY, baked_slots
-from ..shaders.exr_io import read_exr
+from ..bake_directory.exr_io import read_exr
 from .render import compute_device, quiet_stdout, render_still
 from .capture import lightmap_owners
 from .scene_analysis import active_scene, bake_targets, empty_node_material, principled_surface

@@ -5,7 +5,7 @@ import os
 
 import bpy
 
-from ..shaders.bake_plan import BakeCancelled, BakeInputError, BakeSettings
+from ..bake_directory.bake_plan import BakeCancelled, BakeInputError, BakeSettings
 from . import apply as apply_module
 from .pipeline import BakeJob
 from .scene_analysis import build_plan
@@ -236,8 +236,8 @@ class SGLF_OT_filter_hair(bpy.types.Operator):
         return context.scene is not None and context.scene.name not in _jobs
 
     def execute(self, context):
-        from ..shaders.hair_filter import HairFilterError
-        from . import hair
+        from ..hair.filtering import HairFilterError
+        from ..hair import blender_scene as hair
         panel = context.scene.sg_lightfield
         window_manager = context.window_manager
         window_manager.progress_begin(0, 100)

@@ -19,7 +19,7 @@ import threading
 import time
 from pathlib import Path
 
-from ..shaders.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
+from ..bake_directory.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
 from . import apply as apply_module
 from . import lightmap_modifier
 from .capture import LIGHTMAP_LAYER, TILE_KEYS, capture, lightmap_owners, remove_lightmap_uvs

@@ -4,7 +4,7 @@ All rendering happens in a temporary scene that links the user's render-visible 
 scene, objects, lamps and world are never modified (lamps and the world are copied where the render
 needs other settings). Each tile is one render call of many texels (shaders/lightfield_camera.osl).
 
-Passes (directories in the bake directory, see shaders/lightfield_tiles.py):
+Passes (directories in the bake directory, see bake_directory/lightfield_tiles.py):
   lightfield       emission, lamps and all indirect light arriving at each texel; the world is hidden
                    from the texel's own rays when the plan handles it with environment visibility
                    (IWEV), but still lights the scene indirectly.
@@ -37,14 +37,14 @@ import bpy
 import numpy as np
 from mathutils import Vector
 
-from ..shaders.bake_plan import BakeInputError, drive
-from ..shaders.bake_report import save_png, update_report
+from ..bake_directory.bake_plan import BakeInputError, drive
+from ..bake_directory.bake_report import save_png, update_report
 from ..shaders.env_visibility import env_visibility
-from ..shaders.exr_io import read_exr, write_exr
-from ..shaders.lightfield_tiles import (DEFAULT_TILE_MEGAPIXELS, TileIndex, blocks_to_images, images_to_blocks,
+from ..bake_directory.exr_io import read_exr, write_exr
+from ..bake_directory.lightfield_tiles import (DEFAULT_TILE_MEGAPIXELS, TileIndex, blocks_to_images, images_to_blocks,
                                         parse_share, plan_tiles, preview_mosaic, read_preview_images,
                                         tile_is_finished, tile_samples, write_index)
-from ..shaders.texel_maps import adjacent_texel_pairs, channels, read_texel_maps, texels_of_objects
+from ..bake_directory.texel_maps import adjacent_texel_pairs, channels, read_texel_maps, texels_of_objects
 from .capture import scene_bvh
 from .scene_analysis import active_scene, quiet_stdout, remove_datablocks
 

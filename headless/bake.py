@@ -21,7 +21,7 @@ if __name__ == "__main__" and __package__ in (None, "", "headless"):  # started 
 
     run_in_package(__file__)
 
-from ..shaders.bake_plan import PRESETS, ROUGH_MATERIALS, BakeCancelled, BakeInputError, BakeSettings  # noqa: E402
+from ..bake_directory.bake_plan import PRESETS, ROUGH_MATERIALS, BakeCancelled, BakeInputError, BakeSettings  # noqa: E402
 
 ALL_STAGES = ("capture", "render", "train", "apply", "evaluate")
 IMPLEMENTED_STAGES = ALL_STAGES  # the plan is always made; stages are added here as they land

@@ -22,7 +22,7 @@ writes them to bench_out/bench.json.
             bake time, share per stage, FLIP overall / per roughness class / EEVEE; Pareto plot
             bench_out/pareto.png (bake time vs FLIP). Target: Draft on room <= 5 minutes.
   sgcount   how many SGs a material needs, by roughness: the CNN at N = 2..16 on spheres and room, error of the
-            reflected radiance; the measured rule behind shaders/bake_plan.py SG_COUNT_BY_ROUGHNESS; sg_count.png.
+            reflected radiance; the measured rule behind bake_directory/bake_plan.py SG_COUNT_BY_ROUGHNESS; sg_count.png.
   encoders  free SGs against fixed SG12 and L2 SH (each baked, applied, evaluated) at equal bytes per texel, on spheres:
             RMSE and FLIP on glossy pixels (and per roughness class; RMSE also against the converged image),
             reflected-radiance error of each sphere's texels at its roughness, split into the SGs' fit and the
@@ -55,7 +55,7 @@ if __name__ == "__main__" and __package__ in (None, "", "headless"):  # started 
 
     run_in_package(__file__)
 
-from ..shaders.bake_plan import (  # noqa: E402
+from ..bake_directory.bake_plan import (  # noqa: E402
     LOBE_REFIT_STEPS, PRESETS, BakeInputError, BakeSettings, write_json_atomic)
 
 CAPTURE_TARGET_S = 10.0
@@ -102,7 +102,7 @@ def bench_render(out_root: Path, per_texel_subset: int = 24, device: str = "cpu"
     from ..blender_addon.demo_scenes import build_demo_scene
     from ..blender_addon.render import _RenderScene, _texel_inputs, render_stage, valid_texels
     from ..blender_addon.scene_analysis import build_plan
-    from ..shaders.texel_maps import read_texel_maps
+    from ..bake_directory.texel_maps import read_texel_maps
 
     resolution, samples = 16, 16
     scene = build_demo_scene("room")
@@ -195,8 +195,8 @@ def _rendered_lightfields(out_root: Path, scene_name: str, density: float | None
     from ..blender_addon.demo_scenes import build_demo_scene
     from ..blender_addon.render import render_stage
     from ..blender_addon.scene_analysis import build_plan
-    from ..shaders.lightfield_tiles import read_images
-    from ..shaders.texel_maps import adjacent_texel_pairs, channels, read_texel_maps
+    from ..bake_directory.lightfield_tiles import read_images
+    from ..bake_directory.texel_maps import adjacent_texel_pairs, channels, read_texel_maps
     from ..training.sg_fit import pair_indices
 
     scene = build_demo_scene(scene_name)
@@ -309,12 +309,12 @@ def _lobe_width(roughness: float) -> float:
 def bench_sg_count(out_root: Path, scenes=("spheres", "room"), budget_s: float = 60.0) -> dict:
     """How many SGs a material needs: per scene, the CNN at each candidate N (same data, same budget), and the
     relative error of the radiance a surface of each roughness reflects (training.sg_fit.glossy_error). The
-    rule in shaders/bake_plan.py (SG_COUNT_BY_ROUGHNESS) is the smallest N whose error, worst over the scenes,
+    rule in bake_directory/bake_plan.py (SG_COUNT_BY_ROUGHNESS) is the smallest N whose error, worst over the scenes,
     is within SG_COUNT_ERROR_BUDGET of the error at the largest N."""
     import numpy as np
     import torch
 
-    from ..shaders.bake_plan import SG_COUNT_CANDIDATES, SG_COUNT_ERROR_BUDGET
+    from ..bake_directory.bake_plan import SG_COUNT_CANDIDATES, SG_COUNT_ERROR_BUDGET
     from ..training.sg_fit import LightFieldData, TrainConfig, Trainer, glossy_error, reconstruct
 
     roughnesses = (0.05, 0.15, 0.25, 0.35, 0.45, 0.55)
@@ -452,7 +452,7 @@ def _texture_means(scene, out_dir: Path) -> dict:
     from ..blender_addon.scene_analysis import BakeTarget, unbaked
     from ..blender_addon.surface_probe import mean_of_links
     from ..blender_addon.surface_shaders import BAKED_BSDFS
-    from ..shaders.texel_maps import channels, read_texel_maps
+    from ..bake_directory.texel_maps import channels, read_texel_maps
 
     atlas, info = read_texel_maps(out_dir)
     object_ids = channels(atlas, "object_id").astype(np.int64)
@@ -718,10 +718,10 @@ def bench_encoders(out_root: Path, budget_s: float = 60.0, resolution: int = 32,
     from ..blender_addon.evaluate import evaluate_stage
     from ..blender_addon.render import render_stage
     from ..blender_addon.scene_analysis import build_plan
-    from ..shaders.image_metrics import rmse_against_converged
-    from ..shaders.lightfield_tiles import read_images
-    from ..shaders.sg_textures import read_sg_texture, read_sh_texture
-    from ..shaders.texel_maps import channels, read_texel_maps, texels_of_objects
+    from ..bake_directory.image_metrics import rmse_against_converged
+    from ..bake_directory.lightfield_tiles import read_images
+    from ..bake_directory.sg_textures import read_sg_texture, read_sh_texture
+    from ..bake_directory.texel_maps import channels, read_texel_maps, texels_of_objects
     from ..training.baselines import eval_sh
     from ..training.glossy_refit import encoding_error_split
     from ..training.sg_fit import glossy_error, reconstruct
@@ -874,7 +874,7 @@ KNOB_SWEEP = {"texel_density": (2.0, 8.0), "lightfield_resolution": (8, 32), "sa
 def bench_knobs(out_root: Path, scene_name: str = "spheres", sweep=None) -> list[dict]:
     """Every quality knob's measured cost and error: from Draft, one knob at a time to each value of KNOB_SWEEP,
     baked end to end and evaluated against Cycles (2 views, 256x144, no EEVEE): bake seconds per stage and FLIP
-    overall and on glossy pixels. The presets in shaders/bake_plan.py are chosen from this table."""
+    overall and on glossy pixels. The presets in bake_directory/bake_plan.py are chosen from this table."""
     import json
 
     from ..blender_addon.demo_scenes import build_demo_scene
@@ -922,10 +922,10 @@ def bench_stability(out_root: Path, variants=None) -> list[dict]:
     from ..blender_addon.demo_scenes import STABILITY_VARIANTS, build_stability_variant
     from ..blender_addon.evaluate import evaluate_stage
     from ..blender_addon.pipeline import BakeJob
-    from ..shaders.exr_io import read_exr
-    from ..shaders.lightfield_tiles import read_images
-    from ..shaders.sg_textures import read_sg_texture
-    from ..shaders.texel_maps import read_texel_maps
+    from ..bake_directory.exr_io import read_exr
+    from ..bake_directory.lightfield_tiles import read_images
+    from ..bake_directory.sg_textures import read_sg_texture
+    from ..bake_directory.texel_maps import read_texel_maps
 
     rows = []
     for variant in variants or STABILITY_VARIANTS:

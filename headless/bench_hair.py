@@ -35,10 +35,11 @@ if __name__ == "__main__" and __package__ in (None, "", "headless"):  # started 
 
     run_in_package(__file__)
 
-from ..shaders import hair_pairs, hair_raster  # noqa: E402
-from ..shaders.bake_plan import write_json_atomic  # noqa: E402
-from ..shaders.hair_filter import DEFAULT_NETWORK, MODELS_DIR, SHIPPED_MODELS, HairFilterError, load_filter  # noqa: E402
-from ..shaders.image_metrics import flip, psnr, tonemap  # noqa: E402
+from ..hair import pairs as hair_pairs
+from ..hair import raster as hair_raster  # noqa: E402
+from ..bake_directory.bake_plan import write_json_atomic  # noqa: E402
+from ..hair.filtering import DEFAULT_NETWORK, MODELS_DIR, SHIPPED_MODELS, HairFilterError, load_filter  # noqa: E402
+from ..bake_directory.image_metrics import flip, psnr, tonemap  # noqa: E402
 
 HAIR_COLOR, LIGHT, BACKGROUND = np.array(hair_raster.EVALUATION_LOOK[0]), *hair_raster.EVALUATION_LOOK[1:]
 
@@ -57,7 +58,7 @@ def _oidn(image):
 def bench_inference(models: dict, size: int = 1024, repeats: int = 3, more_4spp_models=()) -> list[dict]:
     import bpy
 
-    from ..blender_addon import hair
+    from ..hair import blender_scene as hair
     from ..blender_addon.demo_scenes import build_demo_scene
     from ..blender_addon.scene_analysis import active_scene
 
@@ -111,7 +112,7 @@ def _grooms():
         if (style, density) not in cache:
             import bpy
 
-            from ..blender_addon import hair
+            from ..hair import blender_scene as hair
             from ..blender_addon.scene_analysis import active_scene
 
             scene, objects = hair.dataset_groom(style, density)
@@ -147,7 +148,7 @@ def bench_quality(models: dict, out_root: Path, max_pairs: int = 40, pictures: i
     validation pairs of the trained styles and its held-out style, and unseen_views more views of the trained
     styles; input and Cycles reference rendered here. extra_models: {name: path} of further 4-spp models, scored
     as "<name> 4 spp"."""
-    from ..blender_addon.hair import render_reference
+    from ..hair.blender_scene import render_reference
     from . import hair_dataset
 
     filters = {spp: load_filter(path) for spp, path in models.items()}
@@ -217,7 +218,7 @@ def bench_quality(models: dict, out_root: Path, max_pairs: int = 40, pictures: i
         for name in candidate_filters:
             tables[POOLED_SPLIT]["paired"].update(paired_differences(pooled, name, ("stochastic 16 spp",)))
     if rows_img:
-        from ..shaders.bake_report import save_png
+        from ..bake_directory.bake_report import save_png
 
         save_png(out_root / "hair_rows.png", np.concatenate(rows_img, axis=0), min_width=1)
     return tables

@@ -21,8 +21,8 @@ if __name__ == "__main__" and __package__ in (None, "", "headless"):  # started 
     run_in_package(__file__)
 
 from .bake import Reporter, script_args  # noqa: E402
-from ..shaders.bake_plan import BakeInputError  # noqa: E402
-from ..shaders.hair_filter import DEFAULT_NETWORK, DEFAULT_PASSES, MIRRORS, SHIPPED_MODELS, HairFilterError  # noqa: E402
+from ..bake_directory.bake_plan import BakeInputError  # noqa: E402
+from ..hair.filtering import DEFAULT_NETWORK, DEFAULT_PASSES, MIRRORS, SHIPPED_MODELS, HairFilterError  # noqa: E402
 
 
 def parse_args(args):
@@ -56,7 +56,7 @@ def main(argv=None) -> int:
         return int(exit_.code or 0)
     from .bake import load_scene
 
-    from ..blender_addon import hair
+    from ..hair import blender_scene as hair
 
     reporter = Reporter(as_json=False)
     try:

@@ -22,7 +22,7 @@ if __name__ == "__main__" and __package__ in (None, "", "headless"):  # started 
     run_in_package(__file__)
 
 from .bake import Reporter, script_args  # noqa: E402
-from ..shaders.bake_plan import BakeInputError  # noqa: E402
+from ..bake_directory.bake_plan import BakeInputError  # noqa: E402
 
 # The shipped models' dataset (`make hair-model`); the bench scores the same views.
 PAIRS, HELD_OUT, SIZE, REFERENCE_SAMPLES, DENSITY, SEED = 240, 30, 128, 192, 60000.0, 0
@@ -30,7 +30,7 @@ PAIRS, HELD_OUT, SIZE, REFERENCE_SAMPLES, DENSITY, SEED = 240, 30, 128, 192, 600
 
 def dataset_jobs(pairs: int, held_out: int) -> list[tuple[str, int, str]]:
     """(split directory, index, style) of every pair: the training styles in turn, then the held-out style."""
-    from ..blender_addon import hair
+    from ..hair import blender_scene as hair
 
     return [("train", i, hair.TRAIN_STYLES[i % len(hair.TRAIN_STYLES)]) for i in range(pairs)] + \
         [("held_out", i, hair.HELD_OUT_STYLE) for i in range(held_out)]
@@ -40,7 +40,8 @@ def dataset_view(strands, directory_name: str, index: int, seed: int = SEED, siz
     """The pair's view: (camera, light, stochastic render, draws), from (seed, index, split) alone."""
     import numpy as np
 
-    from ..shaders import hair_pairs, hair_raster
+    from ..hair import pairs as hair_pairs
+    from ..hair import raster as hair_raster
 
     rng = np.random.default_rng([seed, index, 0 if directory_name == "train" else 1])
     return hair_raster.random_view(rng, strands, size, samples or hair_pairs.PAIR_SAMPLES)
@@ -64,9 +65,9 @@ def parse_args(args):
 def make_pairs(ns, progress) -> dict:
     import numpy as np
 
-    from ..blender_addon import hair
+    from ..hair import blender_scene as hair
     from ..blender_addon.scene_analysis import active_scene
-    from ..shaders import hair_pairs
+    from ..hair import pairs as hair_pairs
 
     jobs = [(ns.out / name, i, style) for name, i, style in dataset_jobs(ns.pairs, ns.held_out)]
     todo = [job for job in jobs if not hair_pairs.is_complete(job[0], job[1])]

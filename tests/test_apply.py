@@ -13,11 +13,11 @@ from sg_lightfield.blender_addon.capture import capture
 from sg_lightfield.blender_addon.render import quiet_stdout, render_stage
 from sg_lightfield.blender_addon.scene_analysis import active_scene, build_plan
 from sg_lightfield.shaders import sg_math as m
-from sg_lightfield.shaders.bake_plan import BakeSettings
-from sg_lightfield.shaders.exr_io import read_exr, write_exr
+from sg_lightfield.bake_directory.bake_plan import BakeSettings
+from sg_lightfield.bake_directory.exr_io import read_exr, write_exr
 from sg_lightfield.shaders.node_group import GROUP_NAME, SGTextureLayout, build_node_group, flattened_node_count
 from sg_lightfield.shaders.sg_shading import NumpyOps, encode_sharpness, shade
-from sg_lightfield.shaders.sg_textures import pack_tiles
+from sg_lightfield.bake_directory.sg_textures import pack_tiles
 from tests.scene_helpers import material, mesh_fingerprint, mesh_object, scene_with, uniform_world, uv_sphere
 from sg_lightfield.training.train_stage import ENV_SG_COUNT
 
@@ -331,7 +331,7 @@ def test_eevee_renders_the_baked_scene_like_cycles_evaluates_it(tmp_path):
     from pathlib import Path
 
     from sg_lightfield.blender_addon.pipeline import BakeJob
-    from sg_lightfield.shaders.image_metrics import tonemap
+    from sg_lightfield.bake_directory.image_metrics import tonemap
 
     scene = bpy.data.scenes.new("eevee parity")
     for i, roughness in enumerate((0.2, 0.45)):
@@ -414,9 +414,9 @@ def test_each_material_gets_the_sg_count_its_roughness_needs(tmp_path):
     """A smooth and a rougher glossy material: the rougher one is fitted and shaded with fewer SGs (its texels'
     extra SGs are zero after the amplitude and lobe refits too, its node group is smaller); --uniform-sg-count
     gives both the same."""
-    from sg_lightfield.shaders.bake_plan import auto_sg_count
-    from sg_lightfield.shaders.sg_textures import read_sg_texture
-    from sg_lightfield.shaders.texel_maps import channels, read_texel_maps
+    from sg_lightfield.bake_directory.bake_plan import auto_sg_count
+    from sg_lightfield.bake_directory.sg_textures import read_sg_texture
+    from sg_lightfield.bake_directory.texel_maps import channels, read_texel_maps
     from sg_lightfield.training.train_stage import train_stage
 
     smooth, rougher = material("Smooth", 0.1, metallic=1.0), material("Rougher", 0.58, metallic=1.0)
@@ -497,7 +497,7 @@ def test_sh_baseline_bakes_applies_and_shades_through_its_own_group(tmp_path):
     """The benchmark's SH L2 encoder end to end: an SH texture, the SH variant of the group, a finite Cycles
     render that sees the lamp, irradiance from the SH coefficients close to the rendered one (L2 SH holds
     irradiance to a few per cent), and Remove SG Bake takes the group away."""
-    from sg_lightfield.shaders.sg_textures import is_sh_texture
+    from sg_lightfield.bake_directory.sg_textures import is_sh_texture
     from sg_lightfield.training.train_stage import train_stage
 
     ball = mesh_object("SH ball", uv_sphere(0.6, 16, 8), material("SH metal", 0.5, metallic=1.0))
@@ -530,7 +530,7 @@ def test_each_training_seed_keeps_its_own_checkpoint_and_gives_its_own_sgs(tmp_p
     """The benchmark trains the CNN several times on the same light fields (one training's glossy error varies by
     up to 30 % with its seed, docs/design-additions.md §26). A seed has its own checkpoint: seed 1 must not resume
     seed 0's curve, and seed 0 run again resumes its own, done at its budget, to the same SGs."""
-    from sg_lightfield.shaders.sg_textures import read_sg_texture
+    from sg_lightfield.bake_directory.sg_textures import read_sg_texture
     from sg_lightfield.training.train_stage import train_stage
 
     ball = mesh_object("Seed ball", uv_sphere(0.6, 16, 8), material("Seed metal", 0.5, metallic=1.0))
@@ -559,8 +559,8 @@ def test_with_environment_visibility_one_graph_shades_both_renderers_and_the_sg_
     the courtyard; it must compare them with the light field they encode. And EEVEE spent minutes per courtyard
     material on a Cycles graph beside its own, so one graph feeds one output both renderers use."""
     from sg_lightfield.blender_addon.apply import irradiance_from_lightfields
-    from sg_lightfield.shaders.lightfield_tiles import read_images
-    from sg_lightfield.shaders.texel_maps import channels, read_texel_maps
+    from sg_lightfield.bake_directory.lightfield_tiles import read_images
+    from sg_lightfield.bake_directory.texel_maps import channels, read_texel_maps
     from sg_lightfield.training.train_stage import train_stage
 
     ball = mesh_object("Ball", uv_sphere(1.0), material("glossy", 0.3, metallic=1.0))
@@ -651,7 +651,7 @@ def test_every_sg_count_the_settings_allow_fits_eevees_uniform_block():
     """EEVEE gives a material at most 64 KiB of uniforms; the group used to need 5388 bytes per SG (courtyard's IWEV
     materials rendered magenta from 8 SGs on). Now the most the settings allow (64 SGs, 16 IWEV SGs, 16 environment
     SGs) fits, and the presets' largest (16/16/16) uses a quarter of it."""
-    from sg_lightfield.shaders.bake_plan import BakeInputError
+    from sg_lightfield.bake_directory.bake_plan import BakeInputError
     from sg_lightfield.shaders.node_group import UNIFORM_BLOCK_LIMIT, eevee_uniform_bytes
 
     with pytest.raises(BakeInputError):
@@ -677,7 +677,7 @@ def test_eevee_compiles_the_largest_group_and_its_uniform_block_is_what_we_count
     from pathlib import Path
 
     from sg_lightfield.blender_addon.evaluate import shader_errors
-    from sg_lightfield.shaders.image_metrics import tonemap
+    from sg_lightfield.bake_directory.image_metrics import tonemap
     from sg_lightfield.shaders.node_group import UNIFORM_BLOCK_LIMIT, eevee_uniform_bytes
 
     n, iwev, h, w = 16, 16, 4, 4

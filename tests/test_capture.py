@@ -13,10 +13,10 @@ from mathutils import Matrix
 from sg_lightfield.blender_addon.capture import LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, TEXEL_SCALE_KEY, capture, remove_lightmap_uvs
 from sg_lightfield.blender_addon.demo_scenes import build_demo_scene
 from sg_lightfield.blender_addon.scene_analysis import active_scene, build_plan
-from sg_lightfield.shaders.bake_plan import BakeInputError, BakeSettings
-from sg_lightfield.shaders.bake_report import read_report
-from sg_lightfield.shaders.texel_maps import (CAPTURE_PICTURES, FLAG_BURIED, FLAG_PUSHED_OUT, channels, read_texel_maps)
-from sg_lightfield.shaders.texel_raster import centre_overlap_count
+from sg_lightfield.bake_directory.bake_plan import BakeInputError, BakeSettings
+from sg_lightfield.bake_directory.bake_report import read_report
+from sg_lightfield.bake_directory.texel_maps import (CAPTURE_PICTURES, FLAG_BURIED, FLAG_PUSHED_OUT, channels, read_texel_maps)
+from sg_lightfield.bake_directory.texel_raster import centre_overlap_count
 from tests.scene_helpers import (base_name, cube, material, mesh_fingerprint, mesh_object, object_fingerprint, scene_with,
                                  uv_sphere)
 
@@ -297,7 +297,7 @@ def test_cli_capture_writes_report_and_pictures(tmp_path):
 def test_report_json_stays_strict_json_when_the_bake_equals_its_reference(tmp_path):
     """An all-black scene's bake and reference are identical: PSNR is infinite. Python wrote that as `Infinity`,
     which jq and JavaScript refuse; report.json holds null and report.html says what it means."""
-    from sg_lightfield.shaders.bake_report import save_png, update_report
+    from sg_lightfield.bake_directory.bake_report import save_png, update_report
 
     save_png(tmp_path / "view0.png", np.zeros((4, 12, 3)))
     update_report(tmp_path, "plan", errors={"rmse": 0.0, "psnr": float("inf"), "flip": 0.0, "views": [

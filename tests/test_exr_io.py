@@ -4,7 +4,7 @@ import os
 import numpy as np
 import pytest
 
-from sg_lightfield.shaders.exr_io import ExrError, read_exr, read_exr_metadata, write_exr
+from sg_lightfield.bake_directory.exr_io import ExrError, read_exr, read_exr_metadata, write_exr
 
 
 @pytest.mark.parametrize("channels", [1, 3, 4, 7])

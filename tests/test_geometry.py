@@ -15,8 +15,8 @@ from sg_lightfield.blender_addon.capture import LIGHTMAP_LAYER, capture, remove_
 from sg_lightfield.blender_addon.demo_scenes import bevel_array_subdivision, instance_on_grid
 from sg_lightfield.blender_addon.scene_analysis import active_scene, build_plan, loop_triangle_arrays
 from sg_lightfield.headless.bake import stage_summary
-from sg_lightfield.shaders.bake_plan import BakeInputError, BakeSettings
-from sg_lightfield.shaders.texel_maps import channels, read_texel_maps
+from sg_lightfield.bake_directory.bake_plan import BakeInputError, BakeSettings
+from sg_lightfield.bake_directory.texel_maps import channels, read_texel_maps
 from tests.scene_helpers import base_name, cube, material, mesh_object, object_fingerprint, scene_with, uv_sphere
 
 DRAFT = BakeSettings.from_preset("draft")
@@ -44,7 +44,7 @@ def _evaluated_uv(obj):
 
 
 def _own_texels_overlap(uv_triangles, width, height):
-    from sg_lightfield.shaders.texel_raster import centre_overlap_count
+    from sg_lightfield.bake_directory.texel_raster import centre_overlap_count
 
     px = np.stack([uv_triangles[..., 0] * width, (1 - uv_triangles[..., 1]) * height], axis=-1)
     claimed = centre_overlap_count(px, width, height)
@@ -211,7 +211,7 @@ def test_every_instance_gets_texels_of_its_own_and_its_shading_finds_them(tmp_pa
     scene.view_settings.view_transform = "Standard"
     scene.cycles.samples, scene.cycles.use_denoising = 4, False
     next(o for o in scene.objects if base_name(o.name) == "Floor").hide_render = True
-    from sg_lightfield.shaders.exr_io import read_exr
+    from sg_lightfield.bake_directory.exr_io import read_exr
 
     for engine in ("CYCLES", "BLENDER_EEVEE"):
         scene.render.engine = engine

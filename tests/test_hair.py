@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sg_lightfield.shaders import hair_pairs
-from sg_lightfield.shaders import hair_raster as hr
-from sg_lightfield.shaders.hair_filter import (SHIPPED_MODEL, SHIPPED_MODELS, HairFilterError, load_filter, mean_as_composited,
+from sg_lightfield.hair import pairs as hair_pairs
+from sg_lightfield.hair import raster as hr
+from sg_lightfield.hair.filtering import (SHIPPED_MODEL, SHIPPED_MODELS, HairFilterError, load_filter, mean_as_composited,
                                  mirror_features, unmirror)
 
 REPO = Path(__file__).resolve().parent.parent
@@ -137,7 +137,7 @@ def test_the_networks_unfiltered_estimate_is_the_renderers():
     ONNX); it must be what the renderer's numpy `unfiltered` gives."""
     import torch
 
-    from sg_lightfield.training.hair_unet import unfiltered_estimate
+    from sg_lightfield.hair.unet import unfiltered_estimate
 
     curves = [((-0.08, 0.002 * k, -0.03 + 0.01 * k), (0.08, 0.002 * k, 0.03 - 0.01 * k)) for k in range(6)]
     render = hr.render_stochastic(straight_strands(curves, radius=0.0006), front_camera(64, 0.2), (0.3, -1, 0.4), 4)
@@ -192,8 +192,8 @@ def _tiny_dataset(directory, pairs=10, size=32):
 def test_training_checkpoints_resumes_and_exports_a_filter_onnxruntime_agrees_with(tmp_path):
     import torch
 
-    from sg_lightfield.training import hair_train
-    from sg_lightfield.training.hair_unet import HairNetConfig, HairUNet
+    from sg_lightfield.hair import train as hair_train
+    from sg_lightfield.hair.unet import HairNetConfig, HairUNet
 
     _tiny_dataset(tmp_path / "data")
     # What the shipped filters are: a "+blend" network trained with the FLIP term.
@@ -205,7 +205,7 @@ def test_training_checkpoints_resumes_and_exports_a_filter_onnxruntime_agrees_wi
                                flip_weight=0.3)
     assert resumed["step"] > first["step"]
     assert [h["step"] for h in resumed["history"][:len(first["history"])]] == [h["step"] for h in first["history"]]
-    from sg_lightfield.training.hair_unet import export_onnx
+    from sg_lightfield.hair.unet import export_onnx
 
     path = export_onnx(resumed["model"], tmp_path / "small.onnx", metadata={"steps": resumed["step"]})
     hair_filter = load_filter(path)
@@ -231,7 +231,7 @@ def test_noise_share_predicts_what_sixteen_samples_gain_over_four():
     shares keep the order of what 16 samples gain (the bench's metrics are tone-mapped)."""
     import dataclasses
 
-    from sg_lightfield.shaders.image_metrics import tonemap
+    from sg_lightfield.bake_directory.image_metrics import tonemap
 
     rng = np.random.default_rng(5)
     curves = [(rng.uniform(-0.1, 0.1, 3), rng.uniform(-0.1, 0.1, 3)) for _ in range(80)]
@@ -267,7 +267,7 @@ def test_noise_share_predicts_what_sixteen_samples_gain_over_four():
 def test_training_draws_pairs_by_their_noise_share(tmp_path):
     import torch
 
-    from sg_lightfield.training import hair_train
+    from sg_lightfield.hair import train as hair_train
 
     _tiny_dataset(tmp_path, pairs=4, size=32)
     *_, shares = hair_train.load_pairs(tmp_path, 4, with_noise_shares=True)
@@ -288,7 +288,7 @@ def test_training_draws_pairs_by_their_noise_share(tmp_path):
 
 
 def test_training_command_refuses_absurd_budgets_with_one_message(tmp_path, capsys):
-    from sg_lightfield.training import hair_train
+    from sg_lightfield.hair import train as hair_train
 
     for arguments, message in ((["--steps", "0"], "--steps must be at least 1"),
                                (["--budget", "0"], "--budget must be more than 0 seconds"),
@@ -323,6 +323,7 @@ def test_the_shipped_networks_are_4_spp_filters_with_their_reproduction_recipes(
     assert recipe["step"] == {"base": 20982, "large": 21000}[network]  # base: its 1800-s budget's steps
     makefile = (REPO / "Makefile").read_text()
     assert f"--config {network}+blend " in recipe["command"]
+    assert recipe["command"].startswith("python -m hair.train ")
     assert f"--config {network}+blend --flip-weight 0.3 --steps 21000 --out models/hair_{network}.onnx" in makefile
     assert load_filter().path == SHIPPED_MODEL == SHIPPED_MODELS["large"]  # the default
 
@@ -389,7 +390,7 @@ def test_cycles_reference_and_our_renderer_describe_the_same_shading():
     renderer computes; on the demo groom (opacity 0.7, self-shadowing) the premultiplied means agree."""
     import bpy
 
-    from sg_lightfield.blender_addon import hair
+    from sg_lightfield.hair import blender_scene as hair
     from sg_lightfield.blender_addon.demo_scenes import build_demo_scene
     from sg_lightfield.blender_addon.scene_analysis import active_scene
 
@@ -420,7 +421,7 @@ def test_filter_hair_operator_on_the_hair_scene(tmp_path):
     from sg_lightfield import blender_addon
     from sg_lightfield.blender_addon.demo_scenes import build_demo_scene
     from sg_lightfield.blender_addon.scene_analysis import active_scene
-    from sg_lightfield.shaders.exr_io import read_exr
+    from sg_lightfield.bake_directory.exr_io import read_exr
 
     blender_addon.register()
     try:
@@ -501,7 +502,7 @@ def test_random_views_are_drawn_again_until_strands_are_in_view():
 
 
 def test_the_bench_scores_unseen_views_of_the_trained_styles_and_pairs_methods_per_view():
-    from sg_lightfield.blender_addon import hair
+    from sg_lightfield.hair import blender_scene as hair
     from sg_lightfield.headless import hair_dataset
     from sg_lightfield.headless.bench_hair import paired_differences, unseen_view_jobs
 
@@ -541,7 +542,7 @@ def test_dataset_generation_is_resumable(tmp_path):
 
     # The bench draws the same views from the seeds alone, without the files. The groom is built again, and at
     # this low density its bounds move by ~1 % between builds, so the camera that frames them moves as much.
-    from sg_lightfield.blender_addon import hair
+    from sg_lightfield.hair import blender_scene as hair
     from sg_lightfield.blender_addon.scene_analysis import active_scene
     from sg_lightfield.headless.hair_dataset import dataset_view
 
@@ -563,7 +564,7 @@ def test_dataset_generation_is_resumable(tmp_path):
 def test_two_differently_coloured_grooms_are_said_and_coloured_per_pixel(tmp_path):
     import bpy
 
-    from sg_lightfield.blender_addon import hair
+    from sg_lightfield.hair import blender_scene as hair
     from sg_lightfield.blender_addon.demo_scenes import build_demo_scene
 
     scene = build_demo_scene("demo:hair")

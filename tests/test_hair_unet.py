@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from sg_lightfield.training.hair_unet import CONFIGS, HairNetConfig, HairUNet, export_onnx, hair_loss, onnx_session
+from sg_lightfield.hair.unet import CONFIGS, HairNetConfig, HairUNet, export_onnx, hair_loss, onnx_session
 
 
 @pytest.mark.parametrize("name", list(CONFIGS))
@@ -80,7 +80,7 @@ def test_onnx_export_and_onnxruntime_match_torch(tmp_path, name):
 
 def test_clamped_outputs_keep_a_small_gradient_in_training_and_exact_values():
     """A highlight pushed below zero must still learn (else the channel dies), yet the value is max(0, x)."""
-    from sg_lightfield.training.hair_unet import LEAK, output_transform
+    from sg_lightfield.hair.unet import LEAK, output_transform
 
     raw = torch.tensor([[-2.0, -1.0, 2.0], [0.5, 0.3, 0.5]]).T.reshape(1, 3, 1, 2).requires_grad_(True)
     out = output_transform(raw)
@@ -95,8 +95,8 @@ def test_clamped_outputs_keep_a_small_gradient_in_training_and_exact_values():
 def test_input_blend_mixes_the_two_composites_and_keeps_the_ranges():
     """share 0 gives the filter's output, share 1 the unfiltered one, and any share s composites to the s-mix of
     the two composites (what the loss and the viewer see), with colour factor 1 where nothing is left."""
-    from sg_lightfield.shaders.hair_raster import composite
-    from sg_lightfield.training.hair_unet import blend_with_input
+    from sg_lightfield.hair.raster import composite
+    from sg_lightfield.hair.unet import blend_with_input
 
     generator = torch.Generator().manual_seed(3)
     def outputs(empty_pixels):
@@ -125,10 +125,10 @@ def test_input_blend_mixes_the_two_composites_and_keeps_the_ranges():
 def test_torch_flip_is_the_flip_evaluators_and_has_gradients():
     """The LDR-FLIP loss twin against the flip-evaluator package the bench scores with, on composited hair: a
     noisy render, a blurred one and the reference itself."""
-    from sg_lightfield.shaders import hair_raster
-    from sg_lightfield.shaders.image_metrics import flip, tonemap as tonemap_np
+    from sg_lightfield.hair import raster as hair_raster
+    from sg_lightfield.bake_directory.image_metrics import flip, tonemap as tonemap_np
     from sg_lightfield.training.flip_loss import flip_map
-    from sg_lightfield.training.hair_unet import composite, evaluation_looks, hair_loss, tonemap
+    from sg_lightfield.hair.unet import composite, evaluation_looks, hair_loss, tonemap
 
     rng = np.random.default_rng(0)
     size = 48

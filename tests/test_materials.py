@@ -11,9 +11,9 @@ from sg_lightfield.blender_addon.apply import BAKE_RECORD_KEY, apply_stage, bake
 from sg_lightfield.blender_addon.capture import capture
 from sg_lightfield.blender_addon.render import quiet_stdout, render_stage
 from sg_lightfield.blender_addon.scene_analysis import active_scene, analyse_material, build_plan, enable_nodes
-from sg_lightfield.shaders.bake_plan import BakeSettings
-from sg_lightfield.shaders.exr_io import read_exr
-from sg_lightfield.shaders.texel_maps import channels, read_texel_maps
+from sg_lightfield.bake_directory.bake_plan import BakeSettings
+from sg_lightfield.bake_directory.exr_io import read_exr
+from sg_lightfield.bake_directory.texel_maps import channels, read_texel_maps
 from tests.scene_helpers import base_name, mesh_fingerprint, mesh_object, scene_with
 
 DRAFT = BakeSettings.from_preset("draft")

@@ -202,7 +202,7 @@ def test_half_float_roundtrip_of_sg_parameters(axis, lam, amp, view):
 
 
 def test_rmse_against_converged_removes_the_noise_of_a_two_half_reference():
-    from sg_lightfield.shaders.image_metrics import rmse, rmse_against_converged
+    from sg_lightfield.bake_directory.image_metrics import rmse, rmse_against_converged
 
     rng = np.random.default_rng(7)
     converged = rng.uniform(0.2, 0.8, (144, 256, 3))

@@ -9,7 +9,7 @@ from sg_lightfield.blender_addon.apply import remove_bake
 from sg_lightfield.blender_addon.demo_scenes import build_demo_scene
 from sg_lightfield.blender_addon.pipeline import BakeJob
 from sg_lightfield.blender_addon.scene_analysis import active_scene
-from sg_lightfield.shaders.bake_plan import BakeSettings
+from sg_lightfield.bake_directory.bake_plan import BakeSettings
 from tests.scene_helpers import mesh_fingerprint
 
 pytestmark = pytest.mark.slow

@@ -11,7 +11,7 @@ import pytest
 from sg_lightfield.blender_addon.demo_scenes import build_demo_scene
 from sg_lightfield.blender_addon.scene_analysis import build_plan
 from sg_lightfield.headless.bake import parse_args, script_args
-from sg_lightfield.shaders.bake_plan import BakeInputError, BakePlan, BakeSettings
+from sg_lightfield.bake_directory.bake_plan import BakeInputError, BakePlan, BakeSettings
 from tests.scene_helpers import base_name, material as _material, mesh_object, scene_with as _scene_with
 
 REPO = Path(__file__).resolve().parent.parent

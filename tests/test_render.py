@@ -9,12 +9,12 @@ from mathutils import Matrix
 from sg_lightfield.blender_addon.capture import capture
 from sg_lightfield.blender_addon.render import MIDPOINT_SAMPLES_FACTOR, optix_devices, render_stage
 from sg_lightfield.blender_addon.scene_analysis import build_plan, enable_nodes
-from sg_lightfield.shaders.bake_plan import BakeCancelled, BakeInputError, BakeSettings
+from sg_lightfield.bake_directory.bake_plan import BakeCancelled, BakeInputError, BakeSettings
 from sg_lightfield.shaders.env_visibility import above_horizon_fraction
-from sg_lightfield.shaders.exr_io import read_exr_metadata
-from sg_lightfield.shaders.lightfield_tiles import read_images, read_index
+from sg_lightfield.bake_directory.exr_io import read_exr_metadata
+from sg_lightfield.bake_directory.lightfield_tiles import read_images, read_index
 from sg_lightfield.shaders.octahedral import direction_to_pixel, pixel_directions
-from sg_lightfield.shaders.texel_maps import channels, read_texel_maps, texels_of_objects
+from sg_lightfield.bake_directory.texel_maps import channels, read_texel_maps, texels_of_objects
 from tests.scene_helpers import cube, material, mesh_object, scene_with, uniform_world, uv_sphere
 
 pytestmark = pytest.mark.slow
@@ -345,7 +345,7 @@ def test_atlas_light_field_equals_a_panoramic_render_of_the_same_texel(tmp_path)
     scene.render.filepath = str(tmp_path / "pano.exr")
     from sg_lightfield.blender_addon.render import quiet_stdout
     from sg_lightfield.blender_addon.scene_analysis import active_scene
-    from sg_lightfield.shaders.exr_io import read_exr
+    from sg_lightfield.bake_directory.exr_io import read_exr
     with active_scene(scene), quiet_stdout():
         bpy.ops.render.render(write_still=True, scene=scene.name)
     pano, _, _ = read_exr(tmp_path / "pano.exr", channels=["R", "G", "B"])
@@ -362,7 +362,7 @@ def test_atlas_light_field_equals_a_panoramic_render_of_the_same_texel(tmp_path)
 def _panorama_at(scene, tmp_path, location, name, samples=64):
     from sg_lightfield.blender_addon.render import quiet_stdout
     from sg_lightfield.blender_addon.scene_analysis import active_scene
-    from sg_lightfield.shaders.exr_io import read_exr
+    from sg_lightfield.bake_directory.exr_io import read_exr
     camera = bpy.data.objects.new(name, bpy.data.cameras.new(name))
     camera.data.type, camera.data.panorama_type = "PANO", "EQUIRECTANGULAR"
     camera.data.clip_start, camera.data.clip_end = 1e-6, 1e6

@@ -8,11 +8,11 @@ from sg_lightfield.blender_addon.demo_scenes import STABILITY_VARIANTS, build_st
 from sg_lightfield.blender_addon.pipeline import BakeJob
 from sg_lightfield.blender_addon.render import quiet_stdout
 from sg_lightfield.blender_addon.scene_analysis import active_scene
-from sg_lightfield.shaders.bake_plan import BakeSettings
-from sg_lightfield.shaders.exr_io import read_exr
-from sg_lightfield.shaders.lightfield_tiles import read_images
-from sg_lightfield.shaders.sg_textures import read_sg_texture
-from sg_lightfield.shaders.texel_maps import read_texel_maps
+from sg_lightfield.bake_directory.bake_plan import BakeSettings
+from sg_lightfield.bake_directory.exr_io import read_exr
+from sg_lightfield.bake_directory.lightfield_tiles import read_images
+from sg_lightfield.bake_directory.sg_textures import read_sg_texture
+from sg_lightfield.bake_directory.texel_maps import read_texel_maps
 
 pytestmark = pytest.mark.slow
 

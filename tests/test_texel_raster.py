@@ -4,7 +4,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sg_lightfield.shaders.texel_raster import centre_overlap_count, dilate, rasterize, shelf_pack
+from sg_lightfield.bake_directory.texel_raster import centre_overlap_count, dilate, rasterize, shelf_pack
 
 
 def _point_in_triangle(p, tri):
@@ -86,7 +86,7 @@ def test_shelf_pack_refuses_an_absurd_atlas():
 def test_smoothing_the_irradiance_lowers_noise_and_keeps_objects_and_creases_apart():
     """A 10 x 10 atlas: object 1 is a floor (top half, normal +Z) meeting a wall (rows 5-9, normal +X) at a crease;
     object 2 sits beside it in the atlas. Noisy values per part: smoothing lowers the noise and never mixes parts."""
-    from sg_lightfield.shaders.texel_maps import CHANNEL, TEXEL_CHANNELS, smooth_over_texels
+    from sg_lightfield.bake_directory.texel_maps import CHANNEL, TEXEL_CHANNELS, smooth_over_texels
 
     atlas = np.zeros((10, 10, len(TEXEL_CHANNELS)), np.float32)
     rows, cols = np.mgrid[0:10, 0:10]

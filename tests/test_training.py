@@ -5,7 +5,7 @@ import torch
 
 from sg_lightfield.shaders.octahedral import oct_decode
 from sg_lightfield.shaders.sg_math import AMPLITUDE_MAX_HALF, SHARPNESS_MAX, SHARPNESS_MIN
-from sg_lightfield.shaders.sg_textures import read_sg_texture, write_sg_texture
+from sg_lightfield.bake_directory.sg_textures import read_sg_texture, write_sg_texture
 from sg_lightfield.training.sg_fit import (LightFieldData, TrainConfig, Trainer, blend_parameters, constrain, error_metrics,
                              midpoint_parameters, reconstruct)
 
@@ -203,8 +203,8 @@ def test_sg_texture_round_trip_keeps_hdr_and_dilates_gutters(tmp_path):
 
 
 def test_sh_texture_round_trip_keeps_signs_and_is_told_apart_from_sg_textures(tmp_path):
-    from sg_lightfield.shaders.bake_plan import BakeInputError
-    from sg_lightfield.shaders.sg_textures import is_sh_texture, read_sh_texture, write_sh_texture
+    from sg_lightfield.bake_directory.bake_plan import BakeInputError
+    from sg_lightfield.bake_directory.sg_textures import is_sh_texture, read_sh_texture, write_sh_texture
 
     texels = np.array([[1, 1], [1, 2], [2, 1]])
     coefficients = np.random.default_rng(1).normal(size=(3, 9, 3))

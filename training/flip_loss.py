@@ -1,6 +1,6 @@
 """LDR-FLIP (Andersson et al., "FLIP: A Difference Evaluator for Alternating Images", HPG 2020) in torch, as a
 differentiable loss. The bench and the evaluation score images with the `flip-evaluator` package
-(shaders/image_metrics.flip); this twin follows the same published algorithm and is tested against it.
+(bake_directory/image_metrics.flip); this twin follows the same published algorithm and is tested against it.
 
 Images are (B, 3, H, W) sRGB-encoded values in [0, 1]. Steps: sRGB -> linear -> XYZ -> YCxCz; each opponent
 channel blurred by its contrast-sensitivity filter; back to linear RGB clipped to [0, 1]; CIELAB with the Hunt
@@ -150,5 +150,5 @@ def flip_map(test_srgb: torch.Tensor, reference_srgb: torch.Tensor,
 
 def flip_loss(test_srgb: torch.Tensor, reference_srgb: torch.Tensor,
               pixels_per_degree: float = PIXELS_PER_DEGREE) -> torch.Tensor:
-    """Mean LDR-FLIP: what shaders.image_metrics.flip reports, differentiable."""
+    """Mean LDR-FLIP: what bake_directory.image_metrics.flip reports, differentiable."""
     return flip_map(test_srgb, reference_srgb, pixels_per_degree).mean()

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..shaders.bake_plan import REFIT_LOBE_PIXELS, refit_min_roughness  # noqa: F401 (the refits' bound)
+from ..bake_directory.bake_plan import REFIT_LOBE_PIXELS, refit_min_roughness  # noqa: F401 (the refits' bound)
 from ..shaders.octahedral import pixel_directions, pixel_solid_angles
 from ..shaders.sg_math import (ggx_alpha, ggx_brdf_cos_white, midpoint_parameters, orthonormal_tangents,
                              sg_glossy, sg_sum_eval, unit_midpoint)

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..shaders.atomic import atomic_output
+from ..bake_directory.atomic import atomic_output
 from ..shaders.octahedral import pixel_directions
 from ..shaders.octahedral import pixel_solid_angles as exact_solid_angles
 from ..shaders.sg_math import SHARPNESS_MAX, SHARPNESS_MIN, midpoint_parameters, unit_midpoint  # noqa: F401

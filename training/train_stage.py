@@ -22,12 +22,12 @@ if __name__ == "__main__" and __package__ in (None, "", "training"):  # started 
 
     run_in_package(__file__)
 
-from ..shaders.bake_plan import BakeCancelled, BakeInputError, BakePlan, drive  # noqa: E402
-from ..shaders.bake_report import save_png, update_report  # noqa: E402
+from ..bake_directory.bake_plan import BakeCancelled, BakeInputError, BakePlan, drive  # noqa: E402
+from ..bake_directory.bake_report import save_png, update_report  # noqa: E402
 from ..shaders.env_visibility import above_horizon_fraction  # noqa: E402
-from ..shaders.lightfield_tiles import preview_mosaic, read_images  # noqa: E402
-from ..shaders.sg_textures import bytes_per_texel, sg_texture_path, write_sg_texture, write_sh_texture  # noqa: E402
-from ..shaders.texel_maps import channels, read_texel_maps, texels_of_objects  # noqa: E402
+from ..bake_directory.lightfield_tiles import preview_mosaic, read_images  # noqa: E402
+from ..bake_directory.sg_textures import bytes_per_texel, sg_texture_path, write_sg_texture, write_sh_texture  # noqa: E402
+from ..bake_directory.texel_maps import channels, read_texel_maps, texels_of_objects  # noqa: E402
 
 
 @dataclass
@@ -49,7 +49,7 @@ ENV_FIT_SECONDS = 10.0
 def fit_environment_sgs(out_dir: Path, plan_hash: str, device: str = "cpu") -> dict:
     """The environment (env_radiance.exr, the whole sphere) as ENV_SG_COUNT global SGs: the node group convolves
     them with each texel's warped NDF and multiplies by the texel's W_E. Written to DIR/env_sgs.json."""
-    from ..shaders.exr_io import read_exr
+    from ..bake_directory.exr_io import read_exr
     from .sg_fit import LightFieldData, TrainConfig, Trainer, error_metrics, reconstruct
 
     radiance, _, _ = read_exr(out_dir / "env_radiance.exr", channels=["R", "G", "B"])
@@ -63,7 +63,7 @@ def fit_environment_sgs(out_dir: Path, plan_hash: str, device: str = "cpu") -> d
     data_out = {"plan_hash": plan_hash, "sgs": [[a.tolist(), float(s), m.tolist()]
                                                 for a, s, m in zip(axis, sharpness, amplitude)],
                 "metrics": {k: round(v, 6) for k, v in metrics.items()}}
-    from ..shaders.bake_plan import write_json_atomic
+    from ..bake_directory.bake_plan import write_json_atomic
 
     write_json_atomic(out_dir / ENV_SGS_FILE, data_out)
     return data_out
@@ -87,7 +87,7 @@ def texel_lobe_counts(atlas, texel_info: dict, texels: np.ndarray, plan: BakePla
     """(T,) SGs each texel may use: its material's N from the plan (`most` for texels of materials that get no
     SGs: they sit beside glossy texels and bilinear lookups blend them in); a textured roughness's texels get what
     their measured roughness needs (auto_sg_count), up to the material's N."""
-    from ..shaders.bake_plan import auto_sg_count
+    from ..bake_directory.bake_plan import auto_sg_count
 
     glossy = [m for o in plan.baked_objects for m in o.materials if m.glossy]
     counts = _per_texel(atlas, texel_info, texels, {m.name: m.sg_count for m in glossy}, most, np.int64)

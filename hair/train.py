@@ -1,6 +1,6 @@
 """Train the hair filter on pairs from headless/hair_dataset.py and export it to ONNX.
 
-    python -m training.hair_train --data hair_data/train --config base+blend --flip-weight 0.3 --steps 21000 \
+    python -m hair.train --data hair_data/train --config base+blend --flip-weight 0.3 --steps 21000 \
         --out models/hair_base.onnx
 
 Random 64x64 crops (flipped left-right with tangent x negated; --noise-emphasis g draws a pair with probability
@@ -22,15 +22,15 @@ from pathlib import Path
 
 import torch
 
-if __name__ == "__main__" and __package__ in (None, "", "training"):  # started as a file or with -m
+if __name__ == "__main__" and __package__ in (None, "", "hair"):  # started as a file or with -m
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
     from sg_launch import run_in_package
 
     run_in_package(__file__)
 
-from ..shaders import hair_pairs  # noqa: E402
-from ..shaders.atomic import atomic_output  # noqa: E402
-from .hair_unet import (CONFIGS, LOSS_NORMS, HairNetConfig, HairUNet, export_onnx, hair_loss,  # noqa: E402
+from . import pairs as hair_pairs  # noqa: E402
+from ..bake_directory.atomic import atomic_output  # noqa: E402
+from .unet import (CONFIGS, LOSS_NORMS, HairNetConfig, HairUNet, export_onnx, hair_loss,  # noqa: E402
                                  random_looks)
 
 CROP = 64
@@ -180,7 +180,7 @@ def train(data: Path, config_name: str, budget_s: float, work: Path, resume: boo
 def main(argv=None) -> int:
     from ..headless.bake import Reporter
 
-    p = argparse.ArgumentParser(prog="python -m training.hair_train", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m hair.train", description=__doc__.splitlines()[0])
     p.add_argument("--data", type=Path, required=True, help="the train/ directory of a hair dataset")
     p.add_argument("--config", default="base", choices=sorted(CONFIGS))
     budget = p.add_mutually_exclusive_group()
@@ -222,7 +222,7 @@ def main(argv=None) -> int:
                                                    "best_validation_loss": f"{result['best_validation']:.6g}"})
     history = result["history"]
     first_pair = json.loads(hair_pairs.pair_paths(ns.data, hair_pairs.complete_indices(ns.data)[0])[1].read_text())
-    recipe = {"command": "python -m training.hair_train " + " ".join(sys.argv[1:] if argv is None else argv),
+    recipe = {"command": "python -m hair.train " + " ".join(sys.argv[1:] if argv is None else argv),
               "dataset": {k: first_pair.get(k) for k in ("size", "reference_samples", "density", "samples")},
               **{k: v for k, v in result.items() if k != "model"}}
     with atomic_output(ns.out.with_suffix(".json")) as tmp:

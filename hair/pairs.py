@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_output
-from .exr_io import read_exr, write_exr
-from .hair_raster import EVALUATION_LOOK, FEATURE_NAMES, OUTPUT_NAMES, composite
+from ..bake_directory.atomic import atomic_output
+from ..bake_directory.exr_io import read_exr, write_exr
+from .raster import EVALUATION_LOOK, FEATURE_NAMES, OUTPUT_NAMES, composite
 
 PAIR_SAMPLES = 4
 VALIDATION_EVERY = 10

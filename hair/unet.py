@@ -21,8 +21,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from ..shaders.hair_raster import EVALUATION_LOOK
-from .flip_loss import flip_loss
+from .raster import EVALUATION_LOOK
+from ..training.flip_loss import flip_loss
 
 FEATURES_PER_SAMPLE = 6  # colour factor, highlight, alpha, depth, tangent x, tangent y
 OUTPUTS = 3  # colour factor, highlight, alpha
@@ -168,7 +168,7 @@ LOSS_NORMS = {"l2": lambda d: torch.mean(d ** 2), "l1": lambda d: torch.mean(d.a
 
 def composite(outputs: torch.Tensor, hair_color: torch.Tensor, light: torch.Tensor,
               background: torch.Tensor) -> torch.Tensor:
-    """Torch twin of shaders.hair_raster.composite: (B, 3, H, W) outputs, per-image hair colour (B, 3), light (B,)
+    """Torch twin of hair.raster.composite: (B, 3, H, W) outputs, per-image hair colour (B, 3), light (B,)
     and grey background (B,) -> (B, 3, H, W) linear RGB."""
     alpha = outputs[:, 2:3].clamp(0, 1)
     hair = light.view(-1, 1, 1, 1) * (outputs[:, 0:1] * hair_color.view(-1, 3, 1, 1) + outputs[:, 1:2])
@@ -176,7 +176,7 @@ def composite(outputs: torch.Tensor, hair_color: torch.Tensor, light: torch.Tens
 
 
 def tonemap(linear: torch.Tensor) -> torch.Tensor:
-    """Torch twin of shaders.image_metrics.tonemap: Reinhard per channel, then sRGB encoding."""
+    """Torch twin of bake_directory.image_metrics.tonemap: Reinhard per channel, then sRGB encoding."""
     mapped = linear.clamp(min=0) / (1 + linear.clamp(min=0))
     return torch.where(mapped <= 0.0031308, 12.92 * mapped, 1.055 * mapped.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
 
@@ -223,7 +223,7 @@ def export_onnx(model: HairUNet, path, height: int = 64, width: int = 64, opset:
     Uses torch's TorchScript exporter: the torch.export one needs onnxscript, which nothing else needs."""
     import onnx
 
-    from ..shaders.atomic import atomic_output
+    from ..bake_directory.atomic import atomic_output
     model.eval()
     dummy = torch.zeros((1, model.config.in_channels, height, width))
     with atomic_output(path, suffix=".tmp.onnx") as tmp:

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..shaders.sg_math import AMPLITUDE_MAX_HALF, half_amplitude_scale, pack_sg_half, unpack_sg_half
 from .bake_plan import BakeInputError
 from .exr_io import read_exr, read_exr_metadata, write_exr
-from .sg_math import AMPLITUDE_MAX_HALF, half_amplitude_scale, pack_sg_half, unpack_sg_half
 from .texel_raster import dilate
 
 SH_ENCODER = "sh_l2"

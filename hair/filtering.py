@@ -1,6 +1,6 @@
 """Run the exported hair filter with onnxruntime (CPU provider): no torch, so it works inside Blender.
 
-The ONNX file carries its configuration in its metadata (written by training.hair_unet.export_onnx):
+The ONNX file carries its configuration in its metadata (written by hair.unet.export_onnx):
 samples per pixel and stride. Images whose sides are not multiples of the stride are padded with empty
 pixels (no hair) and cropped back, so any resolution works; the result says when that happened.
 
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .hair_raster import FEATURE_NAMES, StochasticRender
+from .raster import FEATURE_NAMES, StochasticRender
 
 MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
 SHIPPED_MODELS = {  # the 4-spp networks shipped in models/; docs/design-additions.md §22 and §25 measure both

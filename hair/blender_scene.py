@@ -21,13 +21,13 @@ import bpy
 import numpy as np
 from mathutils import Matrix, Vector
 
-from ..shaders.bake_plan import BakeInputError
-from ..shaders.exr_io import read_exr
-from ..shaders.hair_filter import DEFAULT_PASSES
-from ..shaders.hair_raster import HairShading, PinholeCamera, Strands
+from ..bake_directory.bake_plan import BakeInputError
+from ..bake_directory.exr_io import read_exr
+from .filtering import DEFAULT_PASSES
+from .raster import HairShading, PinholeCamera, Strands
 from ..shaders.node_group import NodeOps
-from .render import quiet_stdout
-from .scene_analysis import active_scene, empty_node_material, enable_nodes, remove_datablocks, uses_nodes
+from ..blender_addon.render import quiet_stdout
+from ..blender_addon.scene_analysis import active_scene, empty_node_material, enable_nodes, remove_datablocks, uses_nodes
 
 TEMP_PREFIX = "SGLF hair"
 DEFAULT_HAIR_COLOR = (0.35, 0.2, 0.1)
@@ -271,7 +271,7 @@ HELD_OUT_STYLE = "clumped"  # never seen in training
 
 def dataset_groom(style: str, density: float):
     """The demo head with a denser groom of `style`; returns (scene, hair objects)."""
-    from .demo_scenes import _set_modifier_inputs, build_demo_scene
+    from ..blender_addon.demo_scenes import _set_modifier_inputs, build_demo_scene
     scene = build_demo_scene(f"demo:hair-{style}")
     objects = hair_objects(scene)
     for obj in objects:
@@ -293,7 +293,7 @@ class HairFilterResult:
 
 def opaque_depth(scene, depsgraph, camera: PinholeCamera, pixels: np.ndarray) -> np.ndarray:
     """(H*W,) view depth of the nearest opaque (mesh) surface at the given pixel centres, +inf elsewhere."""
-    from .capture import scene_bvh
+    from ..blender_addon.capture import scene_bvh
     depth = np.full(camera.width * camera.height, np.inf)
     bvh, _ = scene_bvh(scene, depsgraph)
     if bvh is None or len(pixels) == 0:
@@ -315,7 +315,7 @@ def opaque_depth(scene, depsgraph, camera: PinholeCamera, pixels: np.ndarray) ->
 
 def render_background(scene, camera_obj, width: int, height: int, samples: int, exclude) -> np.ndarray:
     """Cycles render of the scene without the hair objects, through the scene's camera: (H, W, 3) linear."""
-    from .render import render_still
+    from ..blender_addon.render import render_still
     created = []
     try:
         temp = bpy.data.scenes.new(f"{TEMP_PREFIX} background")
@@ -349,12 +349,12 @@ def filter_hair(scene, out_dir, model_path=None, width: int | None = None, heigh
     onnxruntime, composite colour factor x hair colour + highlight over a Cycles render of the rest of the
     scene, and write filtered.exr / filtered.png / unfiltered.png / hair_filter.json into out_dir. The model is
     `model_path`, or else the shipped `network` (base: faster; large: more accurate; None: the default, large)."""
-    from ..shaders.bake_report import save_png
-    from ..shaders.hair_filter import load_filter
-    from ..shaders.hair_raster import composite, hair_color_map, render_stochastic
-    from ..shaders.image_metrics import tonemap
-    from ..shaders.atomic import atomic_output
-    from ..shaders.exr_io import write_exr
+    from ..bake_directory.bake_report import save_png
+    from .filtering import load_filter
+    from .raster import composite, hair_color_map, render_stochastic
+    from ..bake_directory.image_metrics import tonemap
+    from ..bake_directory.atomic import atomic_output
+    from ..bake_directory.exr_io import write_exr
     import json
     import time
 
