@@ -1,7 +1,7 @@
 """Benchmarks: `make bench` / `python -m headless.bench [--quick]`.
 
 Speed targets live here, not in tests. Each section prints its measurements side by side and
-writes them to bench_out/bench.json.
+writes them to bench_out/bench.json; bench_out/results.md shows the plots first, then every section's tables.
   capture   capture stage of `room` (and the other demos) at each preset's texel density; target < 10 s
             for `room` at the default (Draft) density.
   render    `room` at ~64^2 texels, R = 16, 16 spp: the atlas (one render call per tile) against one
@@ -57,6 +57,7 @@ if __name__ == "__main__" and __package__ in (None, "", "headless"):  # started 
 
 from ..bake_directory.bake_plan import (  # noqa: E402
     LOBE_REFIT_STEPS, PRESETS, BakeInputError, BakeSettings, write_json_atomic)
+from .bench_results import write_results_page  # noqa: E402
 
 CAPTURE_TARGET_S = 10.0
 SECTIONS = ("capture", "render", "train", "sgcount", "encoders", "knobs", "apply", "presets", "materials", "geometry",
@@ -1092,7 +1093,8 @@ def main(argv=None) -> int:
     if results.keys() & {"presets", "encoders"} and merged.get("presets"):
         _plot_pareto(ns.out / "pareto.png", merged["presets"], merged.get("encoders", ()))
     write_json_atomic(ns.out / "bench.json", merged)
-    print(f"\nwritten: {ns.out / 'bench.json'}")
+    page = write_results_page(ns.out, merged)
+    print(f"\nwritten: {ns.out / 'bench.json'}, {page}")
     return 0
 
 

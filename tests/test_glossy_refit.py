@@ -73,10 +73,10 @@ def test_a_lobe_below_the_horizon_keeps_its_amplitude_while_the_others_are_refit
 
 def test_a_refit_that_raises_the_error_between_texels_is_reverted(monkeypatch):
     """Even texels have a fourth lobe below the horizon, odd ones above it: the bilinear lookup blends the two
-    into a lobe the viewer sees. Without the ridge floor the refit blows the hidden lobe up (the stop-33 bake:
-    1.02 -> 1317) while lowering the texels' own error; train_stage's guard measures between texels and brings the
+    into a lobe the viewer sees. Without the ridge floor the refit blows the hidden lobe up (an encoders bake,
+    design-additions §20: 1.02 -> 1317) while lowering the texels' own error; train_stage's guard measures between texels and brings the
     trained amplitudes back. With the floor the refit is kept."""
-    from sg_lightfield.shaders.texel_maps import CHANNEL, TEXEL_CHANNELS
+    from sg_lightfield.bake_directory.texel_maps import CHANNEL, TEXEL_CHANNELS
     from sg_lightfield.training import glossy_refit
     from sg_lightfield.training.train_stage import interpolated_errors, revert_where_worse_between_texels
 
@@ -240,7 +240,7 @@ def test_refit_stays_finite_for_lobes_below_the_horizon_and_extreme_sharpness():
 def test_refit_is_kept_per_material_only_where_it_lowers_the_held_out_error():
     """train_stage.keep_refit_where_better: a material whose refit raised its held-out error keeps the trained
     amplitudes, one whose refit lowered it takes the refit, texels of materials without an error are untouched."""
-    from sg_lightfield.shaders.texel_maps import CHANNEL, TEXEL_CHANNELS
+    from sg_lightfield.bake_directory.texel_maps import CHANNEL, TEXEL_CHANNELS
     from sg_lightfield.training.train_stage import keep_refit_where_better
 
     atlas = np.zeros((2, 3, len(TEXEL_CHANNELS)), np.float32)
