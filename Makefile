@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed-$(shell cat requirements.txt requirements-extension.
 DEMO_OUT ?= bake_out/spheres
 HAIR_DATA ?= hair_data
 
-.PHONY: demo test test-fast bench check-math extension hair-model clean
+.PHONY: demo test test-fast browser bench check-math extension hair-model clean
 
 $(STAMP): requirements.txt requirements-extension.txt
 	$(PYTHON_BOOTSTRAP) -m venv $(VENV)
@@ -25,7 +25,15 @@ demo: $(STAMP)
 	$(PY) -m headless.build_extension --out dist
 	@echo "report: $(DEMO_OUT)/report.html   baked scene: $(DEMO_OUT)/baked.blend"
 
-test: $(STAMP)
+# The report test opens report.html in Debian's chromium through chromedriver: installed here when missing
+# (as root, or with sudo).
+browser:
+	@command -v chromium >/dev/null && command -v chromedriver >/dev/null || { \
+	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+	  $$SUDO apt-get install -y --no-install-recommends chromium chromium-driver >/dev/null 2>&1 || \
+	  { $$SUDO apt-get update -qq && $$SUDO apt-get install -y --no-install-recommends chromium chromium-driver; }; }
+
+test: $(STAMP) browser
 	$(PY) -m pytest -q
 
 test-fast: $(STAMP)

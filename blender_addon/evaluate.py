@@ -260,6 +260,16 @@ def render_eevee(scene, camera_names, work_dir: Path, samples: int = EEVEE_SAMPL
 REFERENCE_SAMPLES_MIN = 128
 EVALUATE_VIEWS = 2
 EVALUATE_RESOLUTION = (256, 144)
+EVALUATE_PIXELS = EVALUATE_RESOLUTION[0] * EVALUATE_RESOLUTION[1]
+
+
+def evaluation_resolution(scene, pixels: int = EVALUATE_PIXELS) -> tuple[int, int]:
+    """About `pixels` pixels at the aspect of the scene's own render (pixel aspect included): 256 x 144 for 16:9."""
+    render = scene.render
+    aspect = (render.resolution_x * render.pixel_aspect_x) / max(render.resolution_y * render.pixel_aspect_y, 1e-9)
+    aspect = min(max(aspect, 1 / 16), 16)
+    width = max(8, round((pixels * aspect) ** 0.5))
+    return width, max(8, round(width / aspect))
 
 
 def reference_samples_for(settings) -> int:
@@ -277,15 +287,17 @@ def _reference_key(camera, resolution, reference_samples) -> tuple:
         int(reference_samples)
 
 
-def evaluate_stage(scene, plan, out_dir, *, views: int = EVALUATE_VIEWS, resolution=EVALUATE_RESOLUTION,
+def evaluate_stage(scene, plan, out_dir, *, views: int = EVALUATE_VIEWS, resolution=None,
                    reference_samples: int = 128, test_samples: int | None = None, with_eevee: bool = True,
                    reference_cache: dict | None = None) -> dict:
     """test_samples defaults to reference_samples: surfaces the bake does not replace (emitters, rough materials
     left to the renderer) are still path traced in the test render, and must be as converged as in the reference
     to compare fairly. reference_cache: a dict the caller keeps between evaluations of bakes of one unchanged
     scene (the bench's trainings of one encoder); each view's two reference halves and surface images are
-    rendered once per camera placement, image size and samples and reused from it."""
+    rendered once per camera placement, image size and samples and reused from it. resolution: (width, height),
+    by default evaluation_resolution(scene)."""
     test_samples = test_samples or reference_samples
+    resolution = tuple(resolution or evaluation_resolution(scene))
     start = time.perf_counter()
     out_dir = Path(out_dir)
     if BAKE_RECORD_KEY not in scene:
@@ -394,8 +406,12 @@ def _evaluate_eevee(scene, cameras, references, cycles_tests, out_dir: Path, wor
         gap = np.ones((ref_ldr.shape[0], 2, 3))
         save_png(out_dir / picture, np.concatenate([ref_ldr, gap, eevee_ldr, gap, heat(flip_map, 1.0)], axis=1),
                  min_width=0)
+        singles = {"reference": ref_ldr, "eevee_baked": eevee_ldr}
+        for name, image_ldr in singles.items():
+            save_png(out_dir / f"evaluate_view{k}_{name}.png", image_ldr, min_width=0)
         views.append({"flip": mean_flip, "psnr": psnr(ref_ldr, eevee_ldr), "rmse": rmse(ref_ldr, eevee_ldr),
-                      "flip_vs_cycles_bake": parity, "picture": picture})
+                      "flip_vs_cycles_bake": parity, "picture": picture,
+                      "pictures": {name: f"evaluate_view{k}_{name}.png" for name in singles}})
     summary = {key: float(np.mean([v[key] for v in views])) for key in ("flip", "psnr", "rmse", "flip_vs_cycles_bake")}
     # Surfaces the bake leaves alone (rough materials with --rough-materials renderer) are lit by EEVEE itself,
     # which has no light from emissive meshes without its ray tracing: parity with Cycles' evaluation is per class.
@@ -426,8 +442,9 @@ def _evaluate_eevee_without_bake(scene, cameras, references, baked_images, out_d
         picture = f"evaluate_view{k}_three_way.png"
         gap = np.ones((ref_ldr.shape[0], 2, 3))
         save_png(out_dir / picture, np.concatenate([ref_ldr, gap, alone_ldr, gap, baked_ldr], axis=1), min_width=0)
+        save_png(out_dir / f"evaluate_view{k}_eevee_alone.png", alone_ldr, min_width=0)
         views.append({"flip": mean_flip, "psnr": psnr(ref_ldr, alone_ldr), "rmse": rmse(ref_ldr, alone_ldr),
-                      "picture": picture})
+                      "picture": picture, "pictures": {"eevee_alone": f"evaluate_view{k}_eevee_alone.png"}})
     return {"flip": float(np.mean([v["flip"] for v in views])), "psnr": float(np.mean([v["psnr"] for v in views])),
             "views": views, "flip_by_material": flip_by_material(flip_maps, *materials),
             "setup": "original materials; screen-space ray tracing and fast GI; a volume probe over the scene "

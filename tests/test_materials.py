@@ -1,6 +1,7 @@
 """Real materials: the bake keeps each material's own inputs (textures, normal maps, node setups) and replaces only
 its lighting; what it cannot bake is named in the plan and left to the renderer (DESIGN section 10)."""
 import json
+import re
 
 import bpy  # noqa: I001
 import bmesh
@@ -334,32 +335,43 @@ def test_node_group_with_per_pixel_inputs_matches_its_numpy_reference_in_cycles(
     assert worst < 2e-3, worst
 
 
-@pytest.mark.slow
-def test_the_materials_demo_bakes_keeps_every_look_and_compares_with_eevee_alone(tmp_path):
-    """demo:materials end to end at small settings: glass, the alpha cut-out and the coated box are left to the
-    renderer with their reasons; the baked copies still read the user's textures (checker, bump, colour grid, wave
-    factor, brick emission) and the user's node group is copied, not edited; the evaluation scores EEVEE with the bake
-    and EEVEE without it (ray tracing, baked probes) against one Cycles reference, with the three-way picture;
-    Remove SG Bake restores every material and group exactly."""
+@pytest.fixture(scope="module")
+def materials_bake(tmp_path_factory):
+    """demo:materials baked at small settings and evaluated (EEVEE with and without the bake), once for the tests
+    that read it; the fingerprints of its materials and the node groups from before the bake."""
     from sg_lightfield.blender_addon.demo_scenes import build_demo_scene
     from sg_lightfield.blender_addon.evaluate import evaluate_stage
     from sg_lightfield.blender_addon.pipeline import BakeJob
 
+    out = tmp_path_factory.mktemp("materials_bake")
     scene = build_demo_scene("materials")
-    objects = {base_name(o.name): o for o in scene.objects}  # other tests may have made a "Floor" before
     materials = {s.material for o in scene.objects for s in getattr(o, "material_slots", []) if s.material}
     before = {m.name: _material_fingerprint(m) for m in materials}
     group_before = set(bpy.data.node_groups.keys())
     settings = BakeSettings.from_preset("draft", lightfield_resolution=8, samples=8, sg_count=4, training_budget_s=4.0,
                                         lobe_refit_steps=20)
-    job = BakeJob(scene, settings, tmp_path, stages=("capture", "render", "train", "apply"))
+    job = BakeJob(scene, settings, out, stages=("capture", "render", "train", "apply"))
+    job.run()
+    errors = evaluate_stage(scene, job.plan, out, views=1, resolution=(96, 54), reference_samples=16)
+    return {"scene": scene, "job": job, "out": out, "errors": errors, "materials": materials, "before": before,
+            "group_before": group_before}
+
+
+@pytest.mark.slow
+def test_the_materials_demo_bakes_keeps_every_look_and_compares_with_eevee_alone(materials_bake):
+    """demo:materials end to end at small settings: glass, the alpha cut-out and the coated box are left to the
+    renderer with their reasons; the baked copies still read the user's textures (checker, bump, colour grid, wave
+    factor, brick emission) and the user's node group is copied, not edited; the evaluation scores EEVEE with the bake
+    and EEVEE without it (ray tracing, baked probes) against one Cycles reference, with the three-way picture;
+    Remove SG Bake restores every material and group exactly."""
+    scene, job, tmp_path, errors = (materials_bake[k] for k in ("scene", "job", "out", "errors"))
+    objects = {base_name(o.name): o for o in scene.objects}  # other tests may have made a "Floor" before
     plans = {base_name(m.name): m for o in job.plan.objects for m in o.materials}
     for name, word in (("Glass", "transmission"), ("Leaf Cut-out", "alpha"), ("Car Paint", "coat")):
         assert not plans[name].baked and word in plans[name].reason, plans[name]
     for name in ("Checker Floor", "Painted Metal", "Diffuse Glossy Mix", "Grouped Gold", "Glowing Sign"):
         assert plans[name].glossy, plans[name]
     assert plans["Checker Floor"].textured == ["Base Color", "Normal", "Roughness"]
-    job.run()
 
     floor = objects["Floor"].material_slots[0].material
     bsdf = floor.node_tree.nodes["Principled BSDF"]
@@ -378,7 +390,6 @@ def test_the_materials_demo_bakes_keeps_every_look_and_compares_with_eevee_alone
     assert mix.node_tree.nodes["Mix Shader"].inputs["Fac"].links[0].from_node.name == "Wave Texture"
     assert base_name(objects["Glass Sphere"].material_slots[0].material.name) == "Glass"  # left alone
 
-    errors = evaluate_stage(scene, job.plan, tmp_path, views=1, resolution=(96, 54), reference_samples=16)
     alone, eevee = errors["eevee_without_bake"], errors["eevee"]
     assert "error" not in eevee and "error" not in alone, (eevee, alone)
     assert 0 < alone["flip"] < 1 and 0 < eevee["flip"] < 1 and np.isfinite(errors["flip"])
@@ -387,11 +398,32 @@ def test_the_materials_demo_bakes_keeps_every_look_and_compares_with_eevee_alone
     assert "Checker Floor" in {base_name(k) for k in eevee["flip_by_material"]}
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["errors"]["eevee_without_bake"]["flip"] == alone["flip"]
-    assert "EEVEE without the bake" in (tmp_path / "report.html").read_text()
 
     remove_bake(scene)
-    assert {m.name: _material_fingerprint(m) for m in materials} == before
-    assert set(bpy.data.node_groups.keys()) - group_before == set()
+    assert {m.name: _material_fingerprint(m) for m in materials_bake["materials"]} == materials_bake["before"]
+    assert set(bpy.data.node_groups.keys()) - materials_bake["group_before"] == set()
+
+
+@pytest.mark.slow
+def test_the_report_opens_on_the_verdict_and_a_working_comparison_in_a_real_browser(materials_bake):
+    """report.html of the materials bake in headless Chromium: verdict and comparison on the first screen, every
+    picture decodes, the slider moves the split between EEVEE alone and EEVEE with the bake; the page's table has a
+    row per material with both FLIPs, the glass named as left to the renderer; no NaN or Infinity anywhere."""
+    from tests.report_browser import check_report_in_browser
+
+    out, errors = materials_bake["out"], materials_bake["errors"]
+    page = (out / "report.html").read_text()
+    alone, eevee = errors["eevee_without_bake"], errors["eevee"]
+    verdict = page[page.index('<p class="verdict'):page.index("</p>", page.index('<p class="verdict'))]
+    assert f"{eevee['flip']:.3f}" in verdict and f"{alone['flip']:.3f}" in verdict
+    assert page.index('id="verdict"') < page.index("figure class=\"slider\"") < page.index("Per material") \
+        < page.index("<details>")
+    glass = next(k for k in alone["flip_by_material"] if base_name(k) == "Glass")
+    row = page[page.index(f"<th>{glass}</th>"):]
+    assert "left to the renderer" in row[:row.index("</tr>")]
+    assert not re.search(r"\bnan\b|\binf(inity)?\b", page.lower())
+    result = check_report_in_browser(out / "report.html", out / "report_screenshot.png")
+    assert result["images"] >= 4
 
 
 @pytest.mark.slow
