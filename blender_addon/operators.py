@@ -1,13 +1,16 @@
-"""Operators: Bake SG Lightfield (modal, cancellable), Cancel, Remove SG Bake, Show Plan, Open Report, Filter Hair."""
+"""Operators: Bake SG Lightfield (modal, cancellable), Cancel, Remove SG Bake, Show Plan, Open Report, Filter Hair;
+Install / Cancel / Remove Training Runtime."""
 from __future__ import annotations
 
 import os
+import sys
 
 import bpy
 
 from ..bake_directory.bake_plan import BakeCancelled, BakeInputError, BakeSettings
 from . import apply as apply_module
-from .pipeline import BakeJob
+from . import training_runtime
+from .pipeline import TORCH_HELP, BakeJob, torch_in_process
 from .scene_analysis import build_plan
 
 _jobs = {}  # scene name -> running BakeJob (one bake per scene)
@@ -45,10 +48,34 @@ def bake_directory(panel) -> str:
     return settings_path(panel.output_dir, "bake directory")
 
 
-def torch_python_preference(context) -> str:
-    root = __package__.rsplit(".", 1)[0] if __package__ and "." in __package__ else ""
+def _root_package() -> str:
+    return __package__.rsplit(".", 1)[0] if __package__ and "." in __package__ else ""
+
+
+def addon_preferences(context):
+    root = _root_package()
     addon = context.preferences.addons.get(root) if root else None
-    return getattr(addon.preferences, "torch_python", "") if addon is not None else ""
+    return addon.preferences if addon is not None else None
+
+
+def torch_python_preference(context) -> str:
+    return getattr(addon_preferences(context), "torch_python", "")
+
+
+def runtime_user_dir() -> str | None:
+    """The extension's user directory, where Install Training Runtime puts its environment (None outside an
+    installed extension, e.g. bpy as a module: there SGLF_TORCH_PYTHON or this Python's torch trains)."""
+    root = _root_package()
+    if not root.startswith("bl_ext."):
+        return None
+    return bpy.utils.extension_path_user(root, create=True)
+
+
+def training_python(context):
+    """(python, where it was found) for training, or None; this process itself when it has torch."""
+    if torch_in_process():
+        return sys.executable, "this Python"
+    return training_runtime.find_torch_python(torch_python_preference(context), runtime_user_dir())
 
 
 class SGLF_OT_bake(bpy.types.Operator):
@@ -65,9 +92,12 @@ class SGLF_OT_bake(bpy.types.Operator):
     def _start(self, context):
         panel = context.scene.sg_lightfield
         settings = settings_from_panel(panel)
+        if training_python(context) is None:  # said at the click, not after the render
+            raise BakeInputError(TORCH_HELP)
         tile_megapixels = min(max(MODAL_STEP_PATHS / settings.samples / 1e6, 0.002), 4.0)
         job = BakeJob(context.scene, settings, bake_directory(panel), stages=("capture", "render", "train", "apply"),
-                      tile_megapixels=tile_megapixels, torch_python=torch_python_preference(context))
+                      tile_megapixels=tile_megapixels, torch_python=torch_python_preference(context),
+                      runtime_dir=runtime_user_dir())
         _jobs[context.scene.name] = job
         _cancel_requested.discard(context.scene.name)
         panel.is_baking, panel.progress, panel.status = True, 0.0, job.plan.summary()
@@ -276,8 +306,128 @@ class SGLF_OT_filter_hair(bpy.types.Operator):
         return {"FINISHED"}
 
 
+_runtime_install: list = []  # the running RuntimeInstall, at most one
+
+
+def runtime_install_running():
+    return _runtime_install[0] if _runtime_install and _runtime_install[0].running else None
+
+
+class SGLF_OT_install_training_runtime(bpy.types.Operator):
+    """Install torch, numpy and OpenEXR into a Python environment of the extension's own, for training (asks first;
+    Esc or Cancel stops it)"""
+
+    bl_idname = "sg_lightfield.install_training_runtime"
+    bl_label = "Install Training Runtime"
+    bl_options = {"REGISTER"}
+
+    @classmethod
+    def poll(cls, context):
+        return runtime_user_dir() is not None and runtime_install_running() is None
+
+    def _plan(self, context):
+        prefs = addon_preferences(context)
+        source = getattr(prefs, "runtime_source", "AUTO").lower()
+        return training_runtime.plan_install(runtime_user_dir(), source=source,
+                                             wheel_dir=bpy.path.abspath(getattr(prefs, "runtime_wheel_dir", "")))
+
+    def invoke(self, context, event):
+        try:
+            plan = self._plan(context)
+        except training_runtime.RuntimeInstallError as error:
+            self.report({"ERROR"}, f"SG Lightfield: {error}")
+            return {"CANCELLED"}
+        if plan.needs_network and not bpy.app.online_access:
+            self.report({"ERROR"}, "SG Lightfield: Blender does not allow online access (Preferences > System > "
+                                   "Network > Allow Online Access); allow it, or install from a folder of wheels")
+            return {"CANCELLED"}
+        return context.window_manager.invoke_confirm(self, event, title="Install Training Runtime",
+                                                     message=f"Download and install {plan.description()}?",
+                                                     confirm_text="Install")
+
+    def execute(self, context):
+        try:
+            install = training_runtime.RuntimeInstall(self._plan(context), online_allowed=bpy.app.online_access)
+        except training_runtime.RuntimeInstallError as error:
+            self.report({"ERROR"}, f"SG Lightfield: {error}")
+            return {"CANCELLED"}
+        _runtime_install[:] = [install.start()]
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.25, window=context.window)
+        wm.modal_handler_add(self)
+        wm.progress_begin(0, 100)
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        install = _runtime_install[0] if _runtime_install else None
+        if install is None:
+            return {"CANCELLED"}
+        if event.type == "ESC":
+            install.cancel()
+        if event.type not in {"TIMER", "ESC"}:
+            return {"PASS_THROUGH"}
+        progress = install.progress
+        wm = context.window_manager
+        wm.progress_update(int(100 * progress.fraction))
+        if context.workspace is not None:
+            context.workspace.status_text_set(f"Training runtime: {progress.message} ({100 * progress.fraction:.0f}%)")
+        for window in wm.windows:
+            for area in window.screen.areas:
+                area.tag_redraw()
+        if not progress.done:
+            return {"RUNNING_MODAL"}
+        wm.event_timer_remove(self._timer)
+        wm.progress_end()
+        if context.workspace is not None:
+            context.workspace.status_text_set(None)
+        if progress.error:
+            self.report({"WARNING" if progress.error == "cancelled" else "ERROR"},
+                        f"SG Lightfield: training runtime not installed: {progress.error}")
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"SG Lightfield: training runtime {progress.message}")
+        return {"FINISHED"}
+
+
+class SGLF_OT_cancel_training_runtime(bpy.types.Operator):
+    """Stop the training runtime's install; nothing of it is kept"""
+
+    bl_idname = "sg_lightfield.cancel_training_runtime"
+    bl_label = "Cancel Install"
+
+    @classmethod
+    def poll(cls, context):
+        return runtime_install_running() is not None
+
+    def execute(self, context):
+        runtime_install_running().cancel()
+        return {"FINISHED"}
+
+
+class SGLF_OT_remove_training_runtime(bpy.types.Operator):
+    """Delete the installed training runtime (the Python with torch in the extension's user directory)"""
+
+    bl_idname = "sg_lightfield.remove_training_runtime"
+    bl_label = "Remove Training Runtime"
+
+    @classmethod
+    def poll(cls, context):
+        return runtime_user_dir() is not None and runtime_install_running() is None and \
+            training_runtime.installed_runtime(runtime_user_dir()) is not None
+
+    def invoke(self, context, event):
+        return context.window_manager.invoke_confirm(self, event, title="Remove Training Runtime",
+                                                     message="Delete the installed torch environment?",
+                                                     confirm_text="Remove")
+
+    def execute(self, context):
+        training_runtime.remove_runtime(runtime_user_dir())
+        self.report({"INFO"}, "SG Lightfield: training runtime removed")
+        return {"FINISHED"}
+
+
 _classes = (SGLF_OT_bake, SGLF_OT_cancel, SGLF_OT_remove_bake, SGLF_OT_show_plan, SGLF_OT_open_report,
-            SGLF_OT_filter_hair)
+            SGLF_OT_filter_hair, SGLF_OT_install_training_runtime, SGLF_OT_cancel_training_runtime,
+            SGLF_OT_remove_training_runtime)
 
 
 def register():

@@ -11,9 +11,7 @@ import importlib.util
 import json
 import os
 import queue
-import shutil
 import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -25,38 +23,24 @@ from . import lightmap_modifier
 from .capture import LIGHTMAP_LAYER, TILE_KEYS, capture, lightmap_owners, remove_lightmap_uvs
 from .render import render_steps
 from .scene_analysis import build_plan
+from .training_runtime import ENV_VAR, find_torch_python
 
 ALL_STAGES = ("capture", "render", "train", "apply", "evaluate")
 ETA_MIN_PROGRESS = 0.01  # of a stage, before its own rate is trusted over the plan's estimate
 REPO_ROOT = Path(__file__).resolve().parent.parent
-TORCH_HELP = ("training needs a Python with torch 2.13: set it in the add-on preferences (SG Lightfield > Python "
-              "with torch), e.g. a venv made with `python3.11 -m venv sglf && sglf/bin/pip install torch==2.13.0 "
-              "numpy==1.26.4 openexr==3.5.3`")
+TORCH_HELP = ("training needs a Python with torch 2.13, and none was found: install one with Install Training "
+              "Runtime (the panel, or the add-on preferences), set Python with torch in the add-on preferences, or set "
+              f"{ENV_VAR} to a Python 3.11 with torch==2.13.0, numpy==1.26.4 and openexr==3.5.3")
 
 
 def torch_in_process() -> bool:
     return importlib.util.find_spec("torch") is not None
 
 
-def find_torch_python(preferred: str = "") -> str | None:
-    """A Python executable that can import torch: the preference, else this process's Python when it has torch
-    (bpy as a module), else python3.11 / python3 on PATH."""
-    candidates = [preferred] if preferred else []
-    if torch_in_process():
-        candidates.append(sys.executable)
-    candidates += [shutil.which("python3.11") or "", shutil.which("python3") or ""]
-    for candidate in candidates:
-        if not candidate or not os.path.isfile(candidate):
-            continue
-        probe = subprocess.run([candidate, "-c", "import torch, numpy, OpenEXR"], capture_output=True, timeout=120)
-        if probe.returncode == 0:
-            return candidate
-    return None
-
-
 class BakeJob:
     def __init__(self, scene, settings, out_dir, *, stages=ALL_STAGES, share=None, midpoints=0,
                  tile_megapixels=4.0, lightmap_uv="", pack_images=True, training="auto", torch_python="",
+                 runtime_dir=None,
                  reference_samples=0):
         """training: 'in_process' (this Python has torch), 'worker' (a subprocess), or 'auto'. reference_samples:
         the evaluate stage's path-traced reference spp (0: reference_samples_for the settings)."""
@@ -69,7 +53,8 @@ class BakeJob:
         self.stages = [s for s in ALL_STAGES if s in stages]
         self.options = dict(share=share, midpoints=midpoints, tile_megapixels=tile_megapixels,
                             lightmap_uv=lightmap_uv, pack_images=pack_images, reference_samples=reference_samples)
-        self.training, self.torch_python = training, torch_python
+        self.training, self.torch_python, self.runtime_dir = training, torch_python, runtime_dir
+        self.training_python = ""  # the Python the training worker ran in, and where it was found
         self.plan = build_plan(scene, settings)
         write_json_atomic(self.out_dir / "plan.json", self.plan.to_dict())
         self.estimates_s = self._stage_estimates_s()
@@ -261,9 +246,10 @@ class BakeJob:
 
     def _train_worker(self):
         """Training in a separate Python with torch; its JSON progress lines feed the progress bar."""
-        python = find_torch_python(self.torch_python)
-        if python is None:
+        found = find_torch_python(self.torch_python, self.runtime_dir)
+        if found is None:
             raise BakeInputError(TORCH_HELP)
+        python, self.training_python = found
         env = {**os.environ, "PYTHONPATH": str(REPO_ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
         errors = tempfile.TemporaryFile(mode="w+")  # a file, not a pipe: a chatty worker can never block on it
         self._worker = subprocess.Popen([python, "-m", "training.train_stage", "--out", str(self.out_dir), "--json"],

@@ -89,12 +89,44 @@ class SGLightfieldPreferences(bpy.types.AddonPreferences):
     bl_idname = _root_package() or "sg_lightfield"
     torch_python: StringProperty(
         name="Python with torch", subtype="FILE_PATH", default="",
-        description="A Python 3.11 executable with torch 2.13 for training (Blender's own Python has no torch); "
-                    "empty: found automatically")
+        description="Override: a Python 3.11 executable with torch 2.13 for training (Blender's own Python has no "
+                    "torch); empty: the installed training runtime, or SGLF_TORCH_PYTHON")
+    runtime_source: EnumProperty(
+        name="Install From", default="AUTO",
+        items=[("AUTO", "Automatic", "PyPI: CUDA wheels where an NVIDIA driver is found, CPU wheels otherwise"),
+               ("PIP", "Pip's Configuration", "The package index pip is configured with on this computer (a mirror)"),
+               ("WHEELS", "Folder of Wheels", "Offline: torch, numpy and openexr wheels from a folder")])
+    runtime_wheel_dir: StringProperty(name="Wheels", subtype="DIR_PATH", default="",
+                                      description="Folder with the torch, numpy and openexr wheels (offline install)")
 
     def draw(self, context):
-        self.layout.prop(self, "torch_python")
-        self.layout.label(text="Training runs in this Python as a separate process; rendering stays in Blender.")
+        from . import operators, training_runtime
+
+        layout = self.layout
+        box = layout.box()
+        box.label(text="Training Runtime", icon="SCRIPT")
+        user_dir = operators.runtime_user_dir()
+        running = operators.runtime_install_running()
+        installed = training_runtime.installed_runtime(user_dir)
+        if running is not None:
+            box.progress(factor=running.progress.fraction, type="BAR", text=running.progress.message)
+            box.operator("sg_lightfield.cancel_training_runtime", icon="CANCEL")
+        elif installed is not None:
+            record = training_runtime.runtime_record(user_dir)
+            box.label(text=f"Installed: torch {record.get('torch', '?')}"
+                           + (" with CUDA" if record.get("cuda_available") else " (CPU)"), icon="CHECKMARK")
+            box.label(text=str(installed))
+            box.operator("sg_lightfield.remove_training_runtime", icon="TRASH")
+        else:
+            box.label(text="Not installed: training needs torch, which Blender's Python does not have", icon="INFO")
+            box.prop(self, "runtime_source")
+            if self.runtime_source == "WHEELS":
+                box.prop(self, "runtime_wheel_dir")
+            elif not bpy.app.online_access:
+                box.label(text="Online access is off (Preferences > System > Network)", icon="ERROR")
+            box.operator("sg_lightfield.install_training_runtime", icon="IMPORT")
+        layout.prop(self, "torch_python")
+        layout.label(text="Training runs in that Python as a separate process; rendering stays in Blender.")
 
 
 _classes = (SGLightfieldSettings,)

@@ -1,6 +1,8 @@
 """Panels: Render properties and the 3D view sidebar show the same content."""
 from __future__ import annotations
 
+import os
+
 import bpy
 
 
@@ -37,6 +39,7 @@ def draw_sg_lightfield(layout, context):
     row = layout.row(align=True)
     row.operator("sg_lightfield.bake", icon="RENDER_STILL")
     row.operator("sg_lightfield.remove_bake", icon="LOOP_BACK")
+    _draw_training_runtime(layout, context)
     layout.operator("sg_lightfield.open_report", icon="TEXT")
     if any(obj.type == "CURVES" for obj in context.scene.objects):
         box = layout.box()
@@ -47,6 +50,29 @@ def draw_sg_lightfield(layout, context):
         box.prop(settings, "hair_background_samples")
         box.prop(settings, "hair_filter_passes")
         box.operator("sg_lightfield.filter_hair", icon="RENDER_STILL")
+
+
+def _draw_training_runtime(layout, context):
+    """Where training will run, from cheap checks only (no subprocess in a draw call)."""
+    from . import operators, training_runtime
+    from .pipeline import torch_in_process
+
+    if torch_in_process():
+        return
+    running = operators.runtime_install_running()
+    if running is not None:
+        layout.progress(factor=running.progress.fraction, type="BAR", text=running.progress.message)
+        layout.operator("sg_lightfield.cancel_training_runtime", icon="CANCEL")
+        return
+    override = operators.torch_python_preference(context) or os.environ.get(training_runtime.ENV_VAR, "")
+    if override:
+        layout.label(text=f"Training in {os.path.basename(override)} (override)", icon="SCRIPT")
+    elif training_runtime.installed_runtime(operators.runtime_user_dir()) is not None:
+        layout.label(text="Training in the installed runtime", icon="CHECKMARK")
+    else:
+        box = layout.box()
+        box.label(text="Training needs torch, which Blender does not have", icon="INFO")
+        box.operator("sg_lightfield.install_training_runtime", icon="IMPORT")
 
 
 class SGLF_PT_render(bpy.types.Panel):
