@@ -12,7 +12,7 @@ $(STAMP): requirements.txt requirements-extension.txt
 	$(PYTHON_BOOTSTRAP) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -r requirements.txt
-	$(PY) -m pip download --quiet --no-deps --only-binary=:all: -d $(VENV)/wheels -r requirements-extension.txt
+	$(PY) -m headless.build_extension --download-wheels $(VENV)/wheels
 	rm -f $(VENV)/.installed-*
 	touch $(STAMP)
 
