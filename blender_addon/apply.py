@@ -58,6 +58,8 @@ def build_packed_image(out_dir: Path, plan) -> tuple[SGTextureLayout, Path, dict
     shape = atlas.shape[:2]
     lightfield = sg_texture_path(out_dir, "lightfield")
     encoded = bool(plan.sg_objects)  # else only irradiance lightmaps: no SG texture
+    if encoded and not Path(lightfield).is_file():
+        raise BakeInputError(f"{lightfield}: not trained yet; run the train stage first")
     sh = encoded and is_sh_texture(lightfield)  # the benchmark's SH L2 baseline instead of SGs
     n = 0
     if sh:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -22,6 +23,7 @@ if __name__ == "__main__" and __package__ in (None, "", "headless"):  # started 
     run_in_package(__file__)
 
 from ..bake_directory.bake_plan import PRESETS, ROUGH_MATERIALS, BakeCancelled, BakeInputError, BakeSettings  # noqa: E402
+from ..bake_directory.exr_io import ExrError  # noqa: E402
 
 ALL_STAGES = ("capture", "render", "train", "apply", "evaluate")
 IMPLEMENTED_STAGES = ALL_STAGES  # the plan is always made; stages are added here as they land
@@ -32,11 +34,43 @@ def script_args(argv: list[str]) -> list[str]:
     return argv[argv.index("--") + 1:] if "--" in argv else argv[1:]
 
 
+SETTINGS_FILE_OPTIONS = ("preset", "texel-density", "lightfield-resolution", "samples", "lightmap-samples", "sg-count",
+                         "uniform-sg-count", "training-budget", "lobe-refit-steps", "rough-materials", "device",
+                         "midpoints", "reference-samples", "tile-megapixels", "external-images", "lightmap-uv")
+
+
+def _settings_arguments(parser: argparse.ArgumentParser, path: str) -> list[str]:
+    """The options of a --settings JSON file as command-line words (so they are checked like typed ones)."""
+    try:
+        values = json.loads(Path(path).expanduser().read_text())
+    except OSError as exc:
+        parser.error(f"--settings {path}: {exc.strerror or exc}")
+    except ValueError as exc:
+        parser.error(f"--settings {path}: not JSON ({exc})")
+    if not isinstance(values, dict):
+        parser.error(f"--settings {path}: a JSON object of options is expected")
+    words = []
+    for key, value in values.items():
+        if key not in SETTINGS_FILE_OPTIONS:
+            parser.error(f"--settings {path}: '{key}' is not a quality option; use one of "
+                         f"{', '.join(SETTINGS_FILE_OPTIONS)}")
+        if isinstance(value, bool):
+            if key in ("uniform-sg-count",):
+                words.append(f"--{key}" if value else f"--no-{key}")
+            elif value:
+                words.append(f"--{key}")
+        elif isinstance(value, (int, float, str)) and not (isinstance(value, float) and not math.isfinite(value)):
+            words += [f"--{key}", str(value)]
+        else:
+            parser.error(f"--settings {path}: '{key}' must be a number, a word or true/false, not {value!r}")
+    return words
+
+
 def parse_args(args: list[str]) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="headless/bake.py", description="Bake an SG light field.")
     source = p.add_mutually_exclusive_group()
     source.add_argument("--blend", type=Path, help="the .blend to bake (never modified unless --in-place)")
-    source.add_argument("--scene", help="an embedded demo scene, e.g. demo:spheres")
+    source.add_argument("--scene", help="an embedded demo scene, e.g. demo:spheres (--blend demo:NAME is the same)")
     p.add_argument("--out", type=Path, required=True, help="bake directory")
     p.add_argument("--preset", default="draft", choices=sorted(PRESETS), help="quality preset")
     p.add_argument("--stages", default=",".join(ALL_STAGES), help="comma-separated subset of " + ",".join(ALL_STAGES))
@@ -71,7 +105,12 @@ def parse_args(args: list[str]) -> argparse.Namespace:
                    help="use this existing UV layer as the lightmap (validated) instead of generating SGLightmap")
     p.add_argument("--plan-only", action="store_true", help="print the bake plan and stop")
     p.add_argument("--json", action="store_true", help="one JSON object per line on stdout instead of text")
+    p.add_argument("--settings", default="", metavar="FILE",
+                   help="a JSON object of quality options by their long names, e.g. {\"samples\": 64, "
+                        "\"texel-density\": 8} (farm templates pass one file to every task); the command line wins")
     ns = p.parse_args(args)
+    if ns.settings:
+        ns = p.parse_args(_settings_arguments(p, ns.settings) + list(args))
     stages = [s.strip() for s in ns.stages.split(",") if s.strip()]
     unknown = [s for s in stages if s not in ALL_STAGES]
     if unknown:
@@ -152,10 +191,11 @@ class Reporter:
 def load_scene(ns):
     import bpy
 
-    if ns.scene:
+    demo = ns.scene or (str(ns.blend) if ns.blend and str(ns.blend).startswith("demo:") else "")
+    if demo:
         from ..blender_addon.demo_scenes import build_demo_scene
 
-        scene = build_demo_scene(ns.scene)
+        scene = build_demo_scene(demo)
     elif ns.blend:
         path = ns.blend.expanduser().resolve()
         if not path.is_file():
@@ -330,6 +370,12 @@ def main(argv=None) -> int:
             reporter.event("error", message="cancelled")
         print("error: cancelled; finished stages are kept and reused by the next run", file=sys.stderr)
         return 130
+    except ExrError as exc:  # a bake directory file that is not what a stage expects
+        reporter.end_bar()
+        if ns.json:
+            reporter.event("error", message=str(exc))
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     except OSError as exc:  # full disk, permissions: one line naming the file
         reporter.end_bar()
         if ns.json:

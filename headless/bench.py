@@ -38,6 +38,9 @@ writes them to bench_out/bench.json; bench_out/results.md shows the plots first,
             the bake, per material.
   stability the numerical-stability sweep: `spheres` at roughness 0 and 1, a 1e5 emitter, no light, scale 1e4 and
             1e-3, each baked and evaluated: every output finite, and the errors.
+  farm      the Open Job Description template run locally with openjd (one process per task, 3 render tasks) against
+            the one-process bake of spheres at Draft, both whole: wall-time overhead (target <= 10 %) and the tiles
+            compared bit for bit.
   hair      the hair filter (headless/bench_hair.py): onnxruntime time at 1024^2, PSNR/FLIP against Cycles
             of stochastic transparency, our filter and OIDN, the held-out groom apart; bench_out/hair_rows.png.
 """
@@ -61,7 +64,7 @@ from .bench_results import write_results_page  # noqa: E402
 
 CAPTURE_TARGET_S = 10.0
 SECTIONS = ("capture", "render", "train", "sgcount", "encoders", "knobs", "apply", "presets", "materials", "geometry",
-            "stability", "hair")
+            "stability", "farm", "hair")
 
 
 def bench_capture(scenes, presets, out_root: Path) -> list[dict]:
@@ -599,7 +602,7 @@ def _instance_tile_cost(scene, frames=3) -> dict:
     from ..blender_addon import lightmap_modifier
     from ..blender_addon.scene_analysis import active_scene, quiet_stdout
 
-    scene.render.engine = "BLENDER_EEVEE"
+    scene.render.engine = "BLENDER_EEVEE_NEXT" if bpy.app.version < (5, 0, 0) else "BLENDER_EEVEE"
     scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 960, 540, 100
     scene.render.filepath = "/dev/null" if sys.platform != "win32" else "NUL"
 
@@ -914,6 +917,49 @@ def bench_knobs(out_root: Path, scene_name: str = "spheres", sweep=None) -> list
     return rows
 
 
+def bench_farm(out_root: Path, tile_count: int = 3, preset: str = "draft") -> dict:
+    """The Open Job Description template run locally (openjd run: one process per task) against the one-process
+    bake of the same scene and preset, both whole (capture to evaluate), one after the other on this machine."""
+    import json
+    import shutil
+    import subprocess
+
+    import numpy as np
+
+    repo = Path(__file__).resolve().parent.parent
+    single, farm = out_root / f"farm_single_{preset}", out_root / f"farm_openjd_{preset}"
+    for folder in (single, farm):
+        shutil.rmtree(folder, ignore_errors=True)
+    start = time.perf_counter()
+    one = subprocess.run([sys.executable, str(repo / "headless" / "bake.py"), "--scene", "demo:spheres", "--preset",
+                          preset, "--out", str(single)], capture_output=True, text=True)
+    one_s = time.perf_counter() - start
+    if one.returncode != 0:
+        raise RuntimeError(f"one-process bake failed: {one.stderr[-1000:]}")
+    start = time.perf_counter()
+    job = subprocess.run([str(Path(sys.executable).parent / "openjd"), "run",
+                          str(repo / "farm" / "openjd" / "sg_lightfield_bake.yaml"), "-p", "BlendFile=demo:spheres",
+                          "-p", f"OutputDir={farm}", "-p", f"Preset={preset}", "-p", f"TileCount={tile_count}",
+                          "-p", f"Python={sys.executable}", "-p", f"Repository={repo}"], capture_output=True, text=True)
+    farm_s = time.perf_counter() - start
+    if job.returncode != 0:
+        raise RuntimeError(f"openjd run failed: {job.stdout[-1000:]}")
+    from ..bake_directory.exr_io import read_exr
+
+    names = sorted(p.relative_to(single).as_posix() for p in single.glob("*/*.exr"))
+    identical = all(np.array_equal(read_exr(single / n)[0], read_exr(farm / n)[0]) for n in names)
+    stage_s = {name: json.loads((folder / "report.json").read_text())["timings_s"]
+               for name, folder in (("one_process", single), ("openjd", farm))}
+    row = {"scene": "spheres", "preset": preset, "tile_count": tile_count, "one_process_s": round(one_s, 1),
+           "openjd_s": round(farm_s, 1), "overhead_percent": round(100 * (farm_s / one_s - 1), 1),
+           "tiles_compared": len(names), "tiles_identical": identical,
+           "stage_s_one_process": stage_s["one_process"], "stage_s_openjd": stage_s["openjd"]}
+    print(f"farm: spheres {preset}, one process {one_s:.1f} s, openjd run ({tile_count} render tasks, each task its "
+          f"own process) {farm_s:.1f} s: overhead {row['overhead_percent']:+.1f} % (target <= 10 %); "
+          f"{len(names)} tiles {'bit-identical' if identical else 'DIFFER'}")
+    return row
+
+
 def bench_stability(out_root: Path, variants=None) -> list[dict]:
     """The numerical-stability sweep: each extreme `spheres` variant (demo_scenes.STABILITY_VARIANTS) baked end to
     end at small settings and evaluated against its Cycles reference. Reports whether every output (texel maps,
@@ -1085,6 +1131,8 @@ def main(argv=None) -> int:
         results["geometry"] = bench_geometry(ns.out)
     if "stability" in sections:
         results["stability"] = bench_stability(ns.out)
+    if "farm" in sections:
+        results["farm"] = bench_farm(ns.out)
     if "hair" in sections:
         from .bench_hair import bench_hair
 

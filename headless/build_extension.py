@@ -21,7 +21,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_WHEELS = REPO / ".venv" / "wheels"
-STAGE_IGNORE = shutil.ignore_patterns(".git", ".venv", "__pycache__", "bake_out", "bench_out*", "hair_data", "dist",
+STAGE_IGNORE = shutil.ignore_patterns(".git", ".venv*", "__pycache__", "bake_out", "bench_out*", "hair_data", "dist",
                                       "build", "tests", ".pytest_cache", ".hypothesis", "*.zip")
 # Blender's platform -> the wheel platform tag pip downloads for it (CPython 3.11, what Blender 4.2-5.0 ship).
 # pip expands macOS versions downwards itself, not manylinux glibc versions, so those are listed.
