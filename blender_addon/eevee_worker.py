@@ -92,7 +92,8 @@ if ns.best_lighting or ns.without_bake:
     best_lighting(scene)
 cameras = [bpy.data.objects[name] for name in ns.cameras.split(",") if name] or [scene.camera]
 for engine in ns.engines.split(","):
-    scene.render.engine = engine
+    # Blender 4.2-4.5 call EEVEE "BLENDER_EEVEE_NEXT"; files keep the name asked for
+    scene.render.engine = "BLENDER_EEVEE_NEXT" if engine == "BLENDER_EEVEE" and bpy.app.version < (5, 0, 0) else engine
     if engine == "CYCLES":
         scene.cycles.samples, scene.cycles.use_denoising = ns.samples * 4, False
     else:

@@ -22,7 +22,7 @@ from . import apply as apply_module
 from . import lightmap_modifier
 from .capture import LIGHTMAP_LAYER, TILE_KEYS, capture, lightmap_owners, remove_lightmap_uvs
 from .render import render_steps
-from .scene_analysis import build_plan
+from .scene_analysis import build_plan, require_blender_version
 from .training_runtime import ENV_VAR, find_torch_python
 
 ALL_STAGES = ("capture", "render", "train", "apply", "evaluate")
@@ -47,6 +47,7 @@ class BakeJob:
         unknown = [s for s in stages if s not in ALL_STAGES]
         if unknown:
             raise BakeInputError(f"unknown stage(s) {unknown}")
+        require_blender_version()
         self.scene, self.settings, self.out_dir = scene, settings, Path(out_dir)
         if self.out_dir.exists() and not self.out_dir.is_dir():
             raise BakeInputError(f"{out_dir}: exists and is not a directory")

@@ -46,7 +46,7 @@ from ..bake_directory.lightfield_tiles import (DEFAULT_TILE_MEGAPIXELS, TileInde
                                         tile_is_finished, tile_samples, write_index)
 from ..bake_directory.texel_maps import adjacent_texel_pairs, channels, read_texel_maps, texels_of_objects
 from .capture import scene_bvh
-from .scene_analysis import active_scene, quiet_stdout, remove_datablocks
+from .scene_analysis import active_scene, enable_nodes, quiet_stdout, remove_datablocks
 
 CAMERA_SHADER = Path(__file__).resolve().parent.parent / "shaders" / "lightfield_camera.osl"
 LAMP_MIN_PIXEL_FRACTION = 0.5  # of an octahedral pixel's angular radius (about 2/R radians)
@@ -195,6 +195,7 @@ class _RenderScene:
         self.devices = self._contexts.enter_context(compute_device(self.scene, self.plan.settings.device))
         self.camera = self._camera()
         self.holdout = self._new(bpy.data.materials, f"{TEMP_PREFIX} holdout")
+        enable_nodes(self.holdout)
         nodes = self.holdout.node_tree.nodes
         for node in list(nodes):
             if node.type != "OUTPUT_MATERIAL":

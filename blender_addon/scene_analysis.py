@@ -29,6 +29,20 @@ def uses_nodes(id_block) -> bool:
     return bpy.app.version >= (5, 0, 0) or id_block.use_nodes
 
 
+# Cycles' custom OSL camera, which renders the light-field atlas, first shipped in Blender 4.5.
+MIN_BLENDER = (4, 5, 0)
+
+
+def require_blender_version(version=None) -> None:
+    """One clear error where this Blender is too old for the bake (bpy as a module or a script; the extension's
+    manifest keeps older Blenders from installing it)."""
+    version = tuple(version or bpy.app.version)
+    if version < MIN_BLENDER:
+        raise BakeInputError(
+            f"the bake needs Blender {'.'.join(map(str, MIN_BLENDER))} or later: its light-field render uses Cycles' "
+            f"custom OSL camera, which Blender {'.'.join(map(str, version))} does not have")
+
+
 def enable_nodes(id_block) -> None:
     if bpy.app.version < (5, 0, 0):
         id_block.use_nodes = True

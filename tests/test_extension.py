@@ -22,12 +22,12 @@ def _blender_ext():
     return blender_ext
 
 
-def test_manifest_is_valid_for_blender_4_2_and_up():
+def test_manifest_is_valid_for_blender_4_5_and_up():
     manifest = REPO / "blender_manifest.toml"
     errors = _blender_ext().pkg_manifest_from_toml_and_validate_all_errors(str(manifest), strict=True)
     assert not isinstance(errors, list), errors
     data = tomllib.loads(manifest.read_text())
-    assert data["id"] == "sg_lightfield" and data["blender_version_min"] == "4.2.0"
+    assert data["id"] == "sg_lightfield" and data["blender_version_min"] == "4.5.0"
     assert data["type"] == "add-on"
 
 
