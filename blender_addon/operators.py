@@ -71,11 +71,11 @@ def runtime_user_dir() -> str | None:
     return bpy.utils.extension_path_user(root, create=True)
 
 
-def training_python(context):
+def training_python(context, tried: list | None = None):
     """(python, where it was found) for training, or None; this process itself when it has torch."""
     if torch_in_process():
         return sys.executable, "this Python"
-    return training_runtime.find_torch_python(torch_python_preference(context), runtime_user_dir())
+    return training_runtime.find_torch_python(torch_python_preference(context), runtime_user_dir(), tried)
 
 
 class SGLF_OT_bake(bpy.types.Operator):
@@ -92,8 +92,9 @@ class SGLF_OT_bake(bpy.types.Operator):
     def _start(self, context):
         panel = context.scene.sg_lightfield
         settings = settings_from_panel(panel)
-        if training_python(context) is None:  # said at the click, not after the render
-            raise BakeInputError(TORCH_HELP)
+        tried = []
+        if training_python(context, tried) is None:  # said at the click, not after the render
+            raise BakeInputError(training_runtime.missing_torch_message(TORCH_HELP, tried))
         tile_megapixels = min(max(MODAL_STEP_PATHS / settings.samples / 1e6, 0.002), 4.0)
         job = BakeJob(context.scene, settings, bake_directory(panel), stages=("capture", "render", "train", "apply"),
                       tile_megapixels=tile_megapixels, torch_python=torch_python_preference(context),
@@ -352,6 +353,8 @@ class SGLF_OT_install_training_runtime(bpy.types.Operator):
             self.report({"ERROR"}, f"SG Lightfield: {error}")
             return {"CANCELLED"}
         _runtime_install[:] = [install.start()]
+        if context.window is None:  # a script or background Blender: no event loop to poll from, so wait here
+            return self._finish(install.wait())
         wm = context.window_manager
         self._timer = wm.event_timer_add(0.25, window=context.window)
         wm.modal_handler_add(self)
@@ -380,6 +383,9 @@ class SGLF_OT_install_training_runtime(bpy.types.Operator):
         wm.progress_end()
         if context.workspace is not None:
             context.workspace.status_text_set(None)
+        return self._finish(progress)
+
+    def _finish(self, progress):
         if progress.error:
             self.report({"WARNING" if progress.error == "cancelled" else "ERROR"},
                         f"SG Lightfield: training runtime not installed: {progress.error}")

@@ -23,7 +23,7 @@ from . import lightmap_modifier
 from .capture import LIGHTMAP_LAYER, TILE_KEYS, capture, lightmap_owners, remove_lightmap_uvs
 from .render import render_steps
 from .scene_analysis import build_plan, require_blender_version
-from .training_runtime import ENV_VAR, find_torch_python
+from .training_runtime import ENV_VAR, find_torch_python, missing_torch_message
 
 ALL_STAGES = ("capture", "render", "train", "apply", "evaluate")
 ETA_MIN_PROGRESS = 0.01  # of a stage, before its own rate is trusted over the plan's estimate
@@ -247,9 +247,10 @@ class BakeJob:
 
     def _train_worker(self):
         """Training in a separate Python with torch; its JSON progress lines feed the progress bar."""
-        found = find_torch_python(self.torch_python, self.runtime_dir)
+        tried = []
+        found = find_torch_python(self.torch_python, self.runtime_dir, tried)
         if found is None:
-            raise BakeInputError(TORCH_HELP)
+            raise BakeInputError(missing_torch_message(TORCH_HELP, tried))
         python, self.training_python = found
         env = {**os.environ, "PYTHONPATH": str(REPO_ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
         errors = tempfile.TemporaryFile(mode="w+")  # a file, not a pipe: a chatty worker can never block on it

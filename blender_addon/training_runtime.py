@@ -146,8 +146,9 @@ def _has_torch(python: str) -> bool:
         return False
 
 
-def find_torch_python(preferred: str = "", user_dir=None) -> tuple[str, str] | None:
-    """(python, where it came from) for the first Python that imports torch, numpy and OpenEXR, or None."""
+def find_torch_python(preferred: str = "", user_dir=None, tried: list | None = None) -> tuple[str, str] | None:
+    """(python, where it came from) for the first Python that imports torch, numpy and OpenEXR, or None. `tried`
+    collects 'where: python' for every candidate that exists but lacks them (for the message)."""
     candidates = []
     if preferred:
         candidates.append((preferred, "the Python with torch preference"))
@@ -160,9 +161,18 @@ def find_torch_python(preferred: str = "", user_dir=None) -> tuple[str, str] | N
         candidates.append((sys.executable, "this Python"))
     candidates += [(shutil.which(name) or "", f"{name} on PATH") for name in ("python3.11", "python3")]
     for python, origin in candidates:
-        if python and os.path.isfile(python) and _has_torch(python):
-            return python, origin
+        if python and os.path.isfile(python):
+            if _has_torch(python):
+                return python, origin
+            if tried is not None:
+                tried.append(f"{origin}: {python}")
+        elif python and tried is not None and origin in ("the Python with torch preference", ENV_VAR):
+            tried.append(f"{origin}: {python} (no such file)")
     return None
+
+
+def missing_torch_message(help_text: str, tried: list) -> str:
+    return help_text + (f" (tried, without torch 2.13, numpy and OpenEXR: {'; '.join(tried)})" if tried else "")
 
 
 PIP_COLLECTING = re.compile(r"^(Collecting|Processing|Requirement already satisfied:?) (\S+)")

@@ -770,3 +770,19 @@ def test_evaluation_cameras_see_the_baked_objects_from_inside_a_closed_room():
             data = camera.data
             bpy.data.objects.remove(camera)
             bpy.data.cameras.remove(data)
+
+
+def test_the_evaluation_pictures_have_the_scene_cameras_aspect():
+    from sg_lightfield.blender_addon.evaluate import evaluation_resolution
+
+    scene = bpy.data.scenes.new("aspect")
+    try:
+        render = scene.render
+        for size, expected in (((1920, 1080), (256, 144)), ((1080, 1920), (144, 256)), ((1000, 1000), (192, 192))):
+            render.resolution_x, render.resolution_y = size
+            assert evaluation_resolution(scene) == expected
+        render.resolution_x, render.resolution_y, render.pixel_aspect_x = 1000, 1000, 2.0  # anamorphic pixels
+        width, height = evaluation_resolution(scene)
+        assert abs(width / height - 2.0) < 0.02 and abs(width * height - 256 * 144) < 300
+    finally:
+        bpy.data.scenes.remove(scene)

@@ -105,6 +105,14 @@ def test_extension_zip_installs_and_toggles_twice(tmp_path):
         assert not bpy.ops.sg_lightfield.remove_training_runtime.poll()  # nothing installed yet
         user_dir = bpy.utils.extension_path_user(module, create=True)
         assert Path(user_dir).is_dir() and "sg_lightfield" in user_dir
+        online = bpy.context.preferences.system.use_online_access
+        bpy.context.preferences.system.use_online_access = False
+        try:  # without online access the install refuses, before anything is made or downloaded
+            with pytest.raises(RuntimeError, match="does not allow online access"):
+                bpy.ops.sg_lightfield.install_training_runtime("EXEC_DEFAULT")
+        finally:
+            bpy.context.preferences.system.use_online_access = online
+        assert not (Path(user_dir) / "training_runtime").exists()
         for _ in range(2):
             addon_utils.disable(module, default_set=True)
             assert not hasattr(bpy.types.Scene, "sg_lightfield")

@@ -166,3 +166,24 @@ def test_the_openjd_job_runs_locally_its_tiles_equal_a_one_process_bake_and_a_ki
     for name, path in tiles(single).items():
         a, b = read_exr(path)[0], read_exr(farm / name)[0]
         assert a.shape == b.shape and np.array_equal(a, b), name
+
+
+def test_a_settings_file_gives_every_task_the_same_quality_options_and_the_command_line_wins(tmp_path, capsys):
+    settings = tmp_path / "q.json"
+    settings.write_text(json.dumps({**SETTINGS, "uniform-sg-count": False, "preset": "preview"}))
+    ns = parse_args(["--blend", "demo:spheres", "--out", str(tmp_path), "--settings", str(settings),
+                     "--samples", "8"])
+    assert (ns.samples, ns.texel_density, ns.lightfield_resolution, ns.training_budget_s) == (8, 2.0, 8, 3.0)
+    assert ns.uniform_sg_count is False and ns.preset == "preview" and ns.reference_samples == 16
+    assert parse_args(["--scene", "demo:spheres", "--out", str(tmp_path), "--settings="]).samples is None  # empty
+    for bad, message in (({"out": "/elsewhere"}, "'out' is not a quality option"),
+                         ({"samples": [1, 2]}, "'samples' must be a number, a word or true/false"),
+                         ({"samples": "many"}, "argument --samples: invalid int value: 'many'")):
+        settings.write_text(json.dumps(bad))
+        with pytest.raises(SystemExit) as exit_info:
+            parse_args(["--scene", "demo:spheres", "--out", str(tmp_path), "--settings", str(settings)])
+        assert exit_info.value.code == 2 and message in capsys.readouterr().err
+    settings.write_text("{not json")
+    with pytest.raises(SystemExit):
+        parse_args(["--scene", "demo:spheres", "--out", str(tmp_path), "--settings", str(settings)])
+    assert "not JSON" in capsys.readouterr().err

@@ -122,3 +122,12 @@ def test_the_training_python_is_chosen_in_order_and_a_broken_override_is_skipped
     assert tr.find_torch_python(str(tmp_path / "missing"), tmp_path / "user")[1] == tr.ENV_VAR
     assert tr.find_torch_python(sys.executable, tmp_path / "user")[1] == "the Python with torch preference"
     assert "Install Training Runtime" in TORCH_HELP and tr.ENV_VAR in TORCH_HELP and "Python with torch" in TORCH_HELP
+    tried = []
+    no_torch = tmp_path / "plain-python"  # a Python that runs but has no torch
+    no_torch.write_text('#!/bin/sh\nexec /usr/bin/env -i /bin/false "$@"\n')
+    no_torch.chmod(0o755)
+    monkeypatch.setenv(tr.ENV_VAR, str(tmp_path / "gone"))
+    tr.find_torch_python(str(no_torch), tmp_path / "user", tried)
+    assert tried[:2] == [f"the Python with torch preference: {no_torch}", f"{tr.ENV_VAR}: {tmp_path / 'gone'} (no such file)"]
+    message = tr.missing_torch_message(TORCH_HELP, tried)
+    assert message.startswith(TORCH_HELP) and str(no_torch) in message
