@@ -946,16 +946,27 @@ def bench_farm(out_root: Path, tile_count: int = 3, preset: str = "draft") -> di
         raise RuntimeError(f"openjd run failed: {job.stdout[-1000:]}")
     from ..bake_directory.exr_io import read_exr
 
+    starts = []  # what each task pays before its stage: Python, bpy, the scene and the plan (a --plan-only run)
+    for _ in range(3):
+        begin = time.perf_counter()
+        subprocess.run([sys.executable, str(repo / "headless" / "bake.py"), "--scene", "demo:spheres", "--preset",
+                        preset, "--out", str(out_root / "farm_startup"), "--plan-only"], capture_output=True)
+        starts.append(time.perf_counter() - begin)
+    tasks = 1 + tile_count + 1 + 1
     names = sorted(p.relative_to(single).as_posix() for p in single.glob("*/*.exr"))
     identical = all(np.array_equal(read_exr(single / n)[0], read_exr(farm / n)[0]) for n in names)
     stage_s = {name: json.loads((folder / "report.json").read_text())["timings_s"]
                for name, folder in (("one_process", single), ("openjd", farm))}
     row = {"scene": "spheres", "preset": preset, "tile_count": tile_count, "one_process_s": round(one_s, 1),
            "openjd_s": round(farm_s, 1), "overhead_percent": round(100 * (farm_s / one_s - 1), 1),
-           "tiles_compared": len(names), "tiles_identical": identical,
+           "tiles_compared": len(names), "tiles_identical": identical, "tasks": tasks,
+           "task_start_s": round(float(np.median(starts)), 2),
+           "start_overhead_percent": round(100 * (tasks - 1) * float(np.median(starts)) / one_s, 1),
            "stage_s_one_process": stage_s["one_process"], "stage_s_openjd": stage_s["openjd"]}
     print(f"farm: spheres {preset}, one process {one_s:.1f} s, openjd run ({tile_count} render tasks, each task its "
-          f"own process) {farm_s:.1f} s: overhead {row['overhead_percent']:+.1f} % (target <= 10 %); "
+          f"own process) {farm_s:.1f} s: overhead {row['overhead_percent']:+.1f} % (target <= 10 %; the stages' own "
+          f"run-to-run spread is in it); {tasks} tasks starting at {row['task_start_s']:.2f} s each: "
+          f"{row['start_overhead_percent']:.1f} % of the one-process bake; "
           f"{len(names)} tiles {'bit-identical' if identical else 'DIFFER'}")
     return row
 

@@ -5,9 +5,10 @@
 Then in Blender: Edit > Preferences > Get Extensions > Install from Disk, and pick the zip for your platform.
 
 The add-on imports OpenEXR, xatlas, Pillow and onnxruntime inside Blender, which Blender does not ship: their
-wheels (requirements-extension.txt) are bundled. Wheels are per platform, so the build makes one zip per platform
-(linux-x64, windows-x64, macos-arm64, macos-x64), each with that platform's wheels and `platforms` field; Blender's
-build tool splits them (`--split-platforms`) and validates each zip.
+wheels (requirements-extension.txt) are bundled, for Python 3.11 (Blender 4.5, 5.0) and 3.13 (Blender 5.1 and later).
+Wheels are per platform, so the build makes one zip per platform (linux-x64, windows-x64, macos-arm64, macos-x64),
+each with that platform's wheels and `platforms` field; Blender's build tool splits them (`--split-platforms`) and
+validates each zip.
 """
 from __future__ import annotations
 
@@ -28,6 +29,9 @@ STAGE_IGNORE = shutil.ignore_patterns(".git", ".venv*", "__pycache__", "bake_out
 PLATFORM_TAGS = {"linux-x64": ("manylinux_2_28_x86_64", "manylinux_2_17_x86_64", "manylinux2014_x86_64"),
                  "windows-x64": ("win_amd64",), "macos-arm64": ("macosx_14_0_arm64",),
                  "macos-x64": ("macosx_14_0_x86_64",)}
+# Blender 4.5 and 5.0 run Python 3.11, Blender 5.1 and later 3.13: each zip carries wheels for both, and Blender
+# installs the ones for its own Python.
+PYTHON_TAGS = {"3.11": "cp311", "3.13": "cp313"}
 # onnxruntime stopped publishing Intel-macOS wheels after 1.23.2; the hair filters (ONNX opset 17) run on it.
 PIN_OVERRIDES = {"macos-x64": {"onnxruntime": "1.23.2"}}
 
@@ -44,15 +48,16 @@ def requirements(platform: str) -> list[str]:
 def download_wheels(wheels_dir: Path, platforms=tuple(PLATFORM_TAGS)) -> None:
     """Every platform's wheels into wheels_dir/<platform>/ (pip download; only binary wheels, no dependencies)."""
     for platform in platforms:
-        target = Path(wheels_dir) / platform
-        command = [sys.executable, "-m", "pip", "download", "--quiet", "--no-deps", "--only-binary=:all:",
-                   *(arg for tag in PLATFORM_TAGS[platform] for arg in ("--platform", tag)),
-                   "--python-version", "3.11", "--implementation", "cp",
-                   "--abi", "cp311", "--abi", "abi3", "--abi", "none", "-d", str(target), *requirements(platform)]
-        result = subprocess.run(command, capture_output=True, text=True)
-        if result.returncode != 0:
-            errors = [line for line in result.stderr.splitlines() if line.startswith("ERROR")]
-            raise RuntimeError(f"wheels for {platform}: {' '.join(errors) or result.stderr[-500:]}")
+        for python, abi in PYTHON_TAGS.items():
+            target = Path(wheels_dir) / platform
+            command = [sys.executable, "-m", "pip", "download", "--quiet", "--no-deps", "--only-binary=:all:",
+                       *(arg for tag in PLATFORM_TAGS[platform] for arg in ("--platform", tag)),
+                       "--python-version", python, "--implementation", "cp",
+                       "--abi", abi, "-d", str(target), *requirements(platform)]
+            result = subprocess.run(command, capture_output=True, text=True)
+            if result.returncode != 0:
+                errors = [line for line in result.stderr.splitlines() if line.startswith("ERROR")]
+                raise RuntimeError(f"wheels for {platform}, Python {python}: {' '.join(errors) or result.stderr[-500:]}")
 
 
 def bundled_wheels(wheels_dir: Path | None, platforms=tuple(PLATFORM_TAGS)) -> dict[str, list[Path]]:
@@ -65,11 +70,13 @@ def bundled_wheels(wheels_dir: Path | None, platforms=tuple(PLATFORM_TAGS)) -> d
         found[platform] = []
         for pin in requirements(platform):
             name, version = (part.strip() for part in pin.split("=="))
-            matches = sorted(folder.glob(f"{name}-{version}-*.whl"), key=lambda p: p.name.lower())
-            if not matches:
-                raise FileNotFoundError(f"no {name} {version} wheel for {platform} in {folder}; run make (it "
-                                        "downloads them) or python -m headless.build_extension --download-wheels DIR")
-            found[platform].append(matches[-1])
+            for python, abi in PYTHON_TAGS.items():
+                matches = sorted(folder.glob(f"{name}-{version}-{abi}-*.whl"), key=lambda p: p.name.lower())
+                if not matches:
+                    raise FileNotFoundError(f"no {name} {version} wheel for {platform}, Python {python} in {folder}; "
+                                            "run make (it downloads them) or python -m headless.build_extension "
+                                            "--download-wheels DIR")
+                found[platform].append(matches[-1])
     return found
 
 

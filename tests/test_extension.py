@@ -64,8 +64,10 @@ def test_one_zip_per_platform_each_with_its_own_wheels_passes_blenders_validator
         generated = manifest["build"]["generated"]  # what Blender's split build wrote for this zip's platform
         assert generated["platforms"] == [platform]
         wheels = [n.split("/")[1] for n in archive.namelist() if n.startswith("wheels/")]
-        assert sorted(w.split("-")[0] for w in wheels) == ["onnxruntime", "openexr", "pillow", "xatlas"], wheels
-        assert all(WHEEL_TAGS[platform] in w and "cp311" in w for w in wheels), (platform, wheels)
+        for abi in ("cp311", "cp313"):  # Blender 4.5-5.0 and Blender 5.1 and later
+            assert sorted(w.split("-")[0] for w in wheels if f"-{abi}-" in w) == [
+                "onnxruntime", "openexr", "pillow", "xatlas"], (abi, wheels)
+        assert len(wheels) == 8 and all(WHEEL_TAGS[platform] in w for w in wheels), (platform, wheels)
         assert sorted(f"./wheels/{w}" for w in wheels) == sorted(generated["wheels"])
         assert "models/hair_large.onnx" in archive.namelist() and not any(
             n.startswith(("tests/", ".venv/", ".git/")) for n in archive.namelist())
@@ -93,7 +95,7 @@ def test_extension_zip_installs_and_toggles_twice(tmp_path):
     assert bundled == {"openexr", "xatlas", "pillow", "onnxruntime"}
     generated = tomllib.loads(__import__("zipfile").ZipFile(zip_path).read("blender_manifest.toml").decode())[
         "build"]["generated"]
-    assert generated["platforms"] == ["linux-x64"] and len(generated["wheels"]) == 4
+    assert generated["platforms"] == ["linux-x64"] and len(generated["wheels"]) == 8
     result = bpy.ops.extensions.package_install_files(filepath=str(zip_path), repo="user_default",
                                                       enable_on_install=True)
     assert result == {"FINISHED"}
