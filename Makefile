@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed-$(shell cat requirements.txt requirements-extension.
 DEMO_OUT ?= bake_out/spheres
 HAIR_DATA ?= hair_data
 
-.PHONY: demo test test-fast browser bench check-math extension hair-model clean
+.PHONY: demo test test-fast browser bench check-math farm-demo extension hair-model clean
 
 $(STAMP): requirements.txt requirements-extension.txt
 	$(PYTHON_BOOTSTRAP) -m venv $(VENV)
@@ -57,6 +57,13 @@ hair-model: $(STAMP)
 	$(PY) -m hair.train --data $(HAIR_DATA)/train --config large+blend --flip-weight 0.3 --steps 21000 --out models/hair_large.onnx
 	$(PY) -m hair.train --data $(HAIR_DATA)/train --config base+blend@2spp --flip-weight 0.3 --steps 4044 --out models/hair_base@2spp.onnx
 	$(PY) -m hair.train --data $(HAIR_DATA)/train --config base+blend@1spp --flip-weight 0.3 --steps 5057 --out models/hair_base@1spp.onnx
+
+# The farm template run locally (docs/farms.md): one process per task, demo:spheres at Draft, 3 render tasks.
+FARM_OUT ?= bake_out/farm
+farm-demo: $(STAMP)
+	$(VENV)/bin/openjd run farm/openjd/sg_lightfield_bake.yaml -p BlendFile=demo:spheres -p OutputDir=$(abspath $(FARM_OUT)) \
+	  -p Preset=draft -p TileCount=3 -p Python=$(abspath $(PY)) -p Repository=$(CURDIR)
+	@echo "report: $(FARM_OUT)/report.html   baked scene: $(FARM_OUT)/baked.blend"
 
 extension: $(STAMP)
 	$(PY) -m headless.build_extension --out dist
