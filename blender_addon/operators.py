@@ -315,7 +315,7 @@ def runtime_install_running():
 
 
 class SGLF_OT_install_training_runtime(bpy.types.Operator):
-    """Install torch, numpy and OpenEXR into a Python environment of the extension's own, for training (asks first;
+    """Install torch and what training needs besides into a Python environment of the extension's own (asks first;
     Esc or Cancel stops it)"""
 
     bl_idname = "sg_lightfield.install_training_runtime"

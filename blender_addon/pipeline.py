@@ -30,7 +30,8 @@ ETA_MIN_PROGRESS = 0.01  # of a stage, before its own rate is trusted over the p
 REPO_ROOT = Path(__file__).resolve().parent.parent
 TORCH_HELP = ("training needs a Python with torch 2.13, and none was found: install one with Install Training "
               "Runtime (the panel, or the add-on preferences), set Python with torch in the add-on preferences, or set "
-              f"{ENV_VAR} to a Python 3.11 with torch==2.13.0, numpy==1.26.4 and openexr==3.5.3")
+              f"{ENV_VAR} to a Python 3.11 with torch==2.13.0, numpy==1.26.4, openexr==3.5.3, scipy==1.13.1 and "
+              "pillow==11.3.0")
 
 
 def torch_in_process() -> bool:

@@ -95,9 +95,9 @@ class SGLightfieldPreferences(bpy.types.AddonPreferences):
         name="Install From", default="AUTO",
         items=[("AUTO", "Automatic", "PyPI: CUDA wheels where an NVIDIA driver is found, CPU wheels otherwise"),
                ("PIP", "Pip's Configuration", "The package index pip is configured with on this computer (a mirror)"),
-               ("WHEELS", "Folder of Wheels", "Offline: torch, numpy and openexr wheels from a folder")])
+               ("WHEELS", "Folder of Wheels", "Offline: the torch, numpy, openexr, scipy and pillow wheels from a folder")])
     runtime_wheel_dir: StringProperty(name="Wheels", subtype="DIR_PATH", default="",
-                                      description="Folder with the torch, numpy and openexr wheels (offline install)")
+                                      description="Folder with the torch, numpy, openexr, scipy and pillow wheels (offline install)")
 
     def draw(self, context):
         from . import operators, training_runtime

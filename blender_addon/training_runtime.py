@@ -1,4 +1,5 @@
-"""The training runtime: a Python with torch, numpy and OpenEXR in a virtual environment of the extension's own.
+"""The training runtime: a Python with torch and what training needs besides (RUNTIME_REQUIREMENTS) in a virtual
+environment of the extension's own.
 
 Blender's Python has no torch, so training runs as a separate process in a Python that has it. An artist gets one
 with *Install Training Runtime* in the add-on's preferences: after their consent, and only where Blender allows
@@ -25,14 +26,16 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-RUNTIME_REQUIREMENTS = ("torch==2.13.0", "numpy==1.26.4", "openexr==3.5.3")
+# What the train stage imports (requirements.txt's pins): torch, numpy, OpenEXR for the bake directory's EXRs,
+# scipy for the baselines' and refits' least squares, Pillow for its pictures.
+RUNTIME_REQUIREMENTS = ("torch==2.13.0", "numpy==1.26.4", "openexr==3.5.3", "scipy==1.13.1", "pillow==11.3.0")
 RUNTIME_FOLDER = "training_runtime"
 MARKER = "sglf_runtime.json"
 ENV_VAR = "SGLF_TORCH_PYTHON"
 TORCH_CPU_INDEX = "https://download.pytorch.org/whl/cpu"
 TORCH_CUDA_INDEX = "https://download.pytorch.org/whl/cu128"
 SOURCES = ("auto", "pip", "wheels")
-PROBE = "import torch, numpy, OpenEXR"
+PROBE = "import torch, numpy, OpenEXR, scipy.optimize, PIL.Image"
 
 
 class RuntimeInstallError(RuntimeError):
@@ -94,7 +97,7 @@ def plan_install(user_dir, *, source: str = "auto", wheel_dir: str = "", base_py
         folder = Path(wheel_dir).expanduser() if wheel_dir else None
         if folder is None or not folder.is_dir():
             raise RuntimeInstallError(f"the folder of wheels '{wheel_dir}' does not exist; choose the folder that "
-                                      "holds the torch, numpy and openexr wheels")
+                                      "holds the torch, numpy, openexr, scipy and pillow wheels")
         if not list(folder.glob("torch-*.whl")):
             raise RuntimeInstallError(f"no torch wheel (torch-*.whl) in '{folder}'")
         return InstallPlan(target, python, source, "cuda" if "+cu" in " ".join(p.name for p in folder.glob(
@@ -147,7 +150,7 @@ def _has_torch(python: str) -> bool:
 
 
 def find_torch_python(preferred: str = "", user_dir=None, tried: list | None = None) -> tuple[str, str] | None:
-    """(python, where it came from) for the first Python that imports torch, numpy and OpenEXR, or None. `tried`
+    """(python, where it came from) for the first Python that imports what training needs (PROBE), or None. `tried`
     collects 'where: python' for every candidate that exists but lacks them (for the message)."""
     candidates = []
     if preferred:
@@ -172,7 +175,8 @@ def find_torch_python(preferred: str = "", user_dir=None, tried: list | None = N
 
 
 def missing_torch_message(help_text: str, tried: list) -> str:
-    return help_text + (f" (tried, without torch 2.13, numpy and OpenEXR: {'; '.join(tried)})" if tried else "")
+    return help_text + (f" (tried, without torch 2.13, numpy, OpenEXR, scipy and Pillow: {'; '.join(tried)})"
+                        if tried else "")
 
 
 PIP_COLLECTING = re.compile(r"^(Collecting|Processing|Requirement already satisfied:?) (\S+)")
@@ -256,7 +260,7 @@ class RuntimeInstall:
             self._step([plan.base_python, "-m", "venv", str(staging)], 0.0, 0.08, "creating the environment")
             python = str(runtime_python(staging))
             self._step([python, "-m", "pip", "install", "--progress-bar", "off", *plan.pip_options,
-                        *plan.requirements], 0.08, 0.9, "installing torch, numpy and OpenEXR")
+                        *plan.requirements], 0.08, 0.9, "installing torch, numpy, OpenEXR, scipy and Pillow")
             self._step([python, "-c", PROBE + "; print(torch.__version__, torch.cuda.is_available())"], 0.9, 0.97,
                        "checking the runtime")
             version, cuda = (self.progress.log[-1].split() + ["?", "False"])[:2]

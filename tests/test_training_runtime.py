@@ -103,7 +103,7 @@ def test_install_from_the_reachable_index_then_a_bake_trains_through_the_runtime
 
 def test_the_training_python_is_chosen_in_order_and_a_broken_override_is_skipped(tmp_path, monkeypatch):
     """Preference, then SGLF_TORCH_PYTHON, then the installed runtime, then this Python; each only when it imports
-    torch, numpy and OpenEXR. An unfinished install (no marker) is not a runtime."""
+    what training needs (PROBE). An unfinished install (no marker) is not a runtime."""
     import sys
 
     venv = tmp_path / "user" / tr.RUNTIME_FOLDER

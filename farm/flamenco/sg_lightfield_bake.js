@@ -31,7 +31,7 @@ const JOB_TYPE = {
         { key: "repository", type: "string", default: "{sglf}", visible: "submission",
           description: "The SG Lightfield checkout (or installed extension folder) on the Workers" },
         { key: "torch_python", type: "string", default: "{sglf_python}", visible: "submission",
-          description: "A Python 3.11 with torch 2.13, numpy and OpenEXR on the Worker that trains" },
+          description: "A Python 3.11 with torch 2.13, numpy, OpenEXR, scipy and Pillow on the Worker that trains" },
         { key: "blender_cmd", type: "string", default: "{blender}", visible: "hidden" },
         { key: "blendfile", type: "string", required: true, eval: "bpy.data.filepath", visible: "web",
           description: "The .blend to bake (read, never modified)" },
