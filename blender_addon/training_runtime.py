@@ -227,6 +227,8 @@ class RuntimeInstall:
             process.terminate()
 
     def _step(self, command, fraction_from: float, fraction_to: float, message: str) -> None:
+        if self._cancelled:  # cancelled between two steps
+            raise InterruptedError
         self.progress.fraction, self.progress.message = fraction_from, message
         env = {**os.environ, "PIP_DISABLE_PIP_VERSION_CHECK": "1", "PYTHONNOUSERSITE": "1"}
         self._process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
