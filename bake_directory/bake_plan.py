@@ -92,6 +92,7 @@ LIGHT_FIELD_BOUNCE_RULE = "one fewer of the baked surface's own scattering"
 
 
 # Settings each stage's output depends on (cumulative: a stage also depends on the ones before it).
+STAGES = ("capture", "render", "train", "apply", "evaluate")  # the pipeline's stages, in order
 STAGE_SETTINGS = {
     "capture": {"texel_density"},
     "render": {"texel_density", "lightfield_resolution", "samples", "lightmap_samples"},

@@ -12,6 +12,7 @@ import json
 from pathlib import Path
 
 from .atomic import atomic_output
+from .bake_plan import STAGES
 from .image_metrics import rmse_against_converged
 
 PICTURE_CAPTIONS = [
@@ -40,7 +41,7 @@ def _error_rows(label: str, errors: dict, before: dict, before_label: str) -> li
              f"{error:.4f} ({before_label} {before[material]:.4f})") for material, error in errors.items()]
 
 
-def _numbers_rows(report: dict, errors: dict, eevee: dict) -> list:
+def _numbers_rows(report: dict) -> list:
     """(label, value) rows of every measured number, for the folded details."""
     timings = report.get("timings_s", {})
     rows = [("texels", report.get("texels")), ("coverage %", report.get("coverage_percent")),
@@ -140,12 +141,13 @@ def _flip(value) -> str:
     return "—" if value is None else f"{value:.3f}"
 
 
-STAGE_ORDER = ("capture", "render", "train", "apply", "evaluate")
 SAME_WITHIN = 0.05  # per-material FLIPs within 5 % of each other are a tie, not a gain or a loss
 
 
 def _png_size(path: Path) -> tuple[int, int]:
-    header = path.read_bytes()[16:24]
+    """(width, height) from the PNG's IHDR chunk (bytes 16-24), without reading the rest."""
+    with open(path, "rb") as png:
+        header = png.read(24)[16:24]
     return int.from_bytes(header[:4], "big"), int.from_bytes(header[4:], "big")
 
 
@@ -179,7 +181,7 @@ def _verdict(report: dict, plan: dict, out_dir: Path) -> list[str]:
                      'reference.</p>')
     facts = []
     if timings:
-        order = [s for s in STAGE_ORDER if s in timings] + [s for s in timings if s not in STAGE_ORDER]
+        order = [s for s in STAGES if s in timings] + [s for s in timings if s not in STAGES]
         stages = " · ".join(f"{esc(stage)} {_seconds(timings[stage])}" for stage in order)
         facts.append(f"<li><b>Time</b> {_seconds(sum(timings.values()))} ({stages})</li>")
     facts.append(f"<li><b>On disk</b> {_megabytes(total)} in the bake directory"
@@ -319,7 +321,7 @@ def write_report_html(out_dir) -> Path:
     parts += [f"<li>{esc(line)}</li>" for line in plan.get("decisions", [])]
     parts.append("</ul></details>")
     parts.append("<details><summary>Numbers: stages, texels, errors, refits</summary><table>")
-    for key, value in _numbers_rows(report, errors, eevee):
+    for key, value in _numbers_rows(report):
         if value is not None:
             parts.append(f"<tr><th>{esc(key)}</th><td>{esc(str(round(value, 5) if isinstance(value, float) else value))}"
                          "</td></tr>")

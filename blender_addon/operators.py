@@ -10,7 +10,7 @@ import bpy
 from ..bake_directory.bake_plan import BakeCancelled, BakeInputError, BakeSettings
 from . import apply as apply_module
 from . import training_runtime
-from .pipeline import TORCH_HELP, BakeJob, torch_in_process
+from .pipeline import BakeJob
 from .scene_analysis import build_plan
 
 _jobs = {}  # scene name -> running BakeJob (one bake per scene)
@@ -73,9 +73,26 @@ def runtime_user_dir() -> str | None:
 
 def training_python(context, tried: list | None = None):
     """(python, where it was found) for training, or None; this process itself when it has torch."""
-    if torch_in_process():
+    if training_runtime.torch_in_process():
         return sys.executable, "this Python"
     return training_runtime.find_torch_python(torch_python_preference(context), runtime_user_dir(), tried)
+
+
+def begin_modal(operator, context, interval_s: float):
+    """Timer, modal handler and progress bar for a long operator; end_modal takes them down again."""
+    wm = context.window_manager
+    operator._timer = wm.event_timer_add(interval_s, window=context.window)
+    wm.modal_handler_add(operator)
+    wm.progress_begin(0, 100)
+    return {"RUNNING_MODAL"}
+
+
+def end_modal(operator, context):
+    wm = context.window_manager
+    wm.event_timer_remove(operator._timer)
+    wm.progress_end()
+    if context.workspace is not None:
+        context.workspace.status_text_set(None)
 
 
 class SGLF_OT_bake(bpy.types.Operator):
@@ -94,7 +111,7 @@ class SGLF_OT_bake(bpy.types.Operator):
         settings = settings_from_panel(panel)
         tried = []
         if training_python(context, tried) is None:  # said at the click, not after the render
-            raise BakeInputError(training_runtime.missing_torch_message(TORCH_HELP, tried))
+            raise BakeInputError(training_runtime.missing_torch_message(training_runtime.TORCH_HELP, tried))
         tile_megapixels = min(max(MODAL_STEP_PATHS / settings.samples / 1e6, 0.002), 4.0)
         job = BakeJob(context.scene, settings, bake_directory(panel), stages=("capture", "render", "train", "apply"),
                       tile_megapixels=tile_megapixels, torch_python=torch_python_preference(context),
@@ -132,16 +149,10 @@ class SGLF_OT_bake(bpy.types.Operator):
         except (BakeInputError, OSError) as exc:
             self._finish(context, None, str(exc), "ERROR")
             return {"CANCELLED"}
-        self._timer = context.window_manager.event_timer_add(0.05, window=context.window)
-        context.window_manager.modal_handler_add(self)
-        context.window_manager.progress_begin(0, 100)
-        return {"RUNNING_MODAL"}
+        return begin_modal(self, context, 0.05)
 
     def _stop_ui(self, context):
-        context.window_manager.event_timer_remove(self._timer)
-        context.window_manager.progress_end()
-        if context.workspace is not None:
-            context.workspace.status_text_set(None)
+        end_modal(self, context)
         for area in context.screen.areas if context.screen else ():
             area.tag_redraw()
 
@@ -355,11 +366,7 @@ class SGLF_OT_install_training_runtime(bpy.types.Operator):
         _runtime_install[:] = [install.start()]
         if context.window is None:  # a script or background Blender: no event loop to poll from, so wait here
             return self._finish(install.wait())
-        wm = context.window_manager
-        self._timer = wm.event_timer_add(0.25, window=context.window)
-        wm.modal_handler_add(self)
-        wm.progress_begin(0, 100)
-        return {"RUNNING_MODAL"}
+        return begin_modal(self, context, 0.25)
 
     def modal(self, context, event):
         install = _runtime_install[0] if _runtime_install else None
@@ -379,10 +386,7 @@ class SGLF_OT_install_training_runtime(bpy.types.Operator):
                 area.tag_redraw()
         if not progress.done:
             return {"RUNNING_MODAL"}
-        wm.event_timer_remove(self._timer)
-        wm.progress_end()
-        if context.workspace is not None:
-            context.workspace.status_text_set(None)
+        end_modal(self, context)
         return self._finish(progress)
 
     def _finish(self, progress):

@@ -7,7 +7,6 @@ to the bake directory stay there and are reused by the next attempt (render tile
 """
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import queue
@@ -17,25 +16,17 @@ import threading
 import time
 from pathlib import Path
 
+from ..bake_directory.bake_plan import STAGES as ALL_STAGES
 from ..bake_directory.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
 from . import apply as apply_module
 from . import lightmap_modifier
 from .capture import LIGHTMAP_LAYER, TILE_KEYS, capture, lightmap_owners, remove_lightmap_uvs
 from .render import render_steps
 from .scene_analysis import build_plan, require_blender_version
-from .training_runtime import ENV_VAR, find_torch_python, missing_torch_message
+from .training_runtime import TORCH_HELP, find_torch_python, missing_torch_message, torch_in_process
 
-ALL_STAGES = ("capture", "render", "train", "apply", "evaluate")
 ETA_MIN_PROGRESS = 0.01  # of a stage, before its own rate is trusted over the plan's estimate
 REPO_ROOT = Path(__file__).resolve().parent.parent
-TORCH_HELP = ("training needs a Python with torch 2.13, and none was found: install one with Install Training "
-              "Runtime (the panel, or the add-on preferences), set Python with torch in the add-on preferences, or set "
-              f"{ENV_VAR} to a Python 3.11 with torch==2.13.0, numpy==1.26.4, openexr==3.5.3, scipy==1.13.1 and "
-              "pillow==11.3.0")
-
-
-def torch_in_process() -> bool:
-    return importlib.util.find_spec("torch") is not None
 
 
 class BakeJob:

@@ -36,6 +36,9 @@ TORCH_CPU_INDEX = "https://download.pytorch.org/whl/cpu"
 TORCH_CUDA_INDEX = "https://download.pytorch.org/whl/cu128"
 SOURCES = ("auto", "pip", "wheels")
 PROBE = "import torch, numpy, OpenEXR, scipy.optimize, PIL.Image"
+TORCH_HELP = ("training needs a Python with torch 2.13, and none was found: install one with Install Training "
+              "Runtime (the panel, or the add-on preferences), set Python with torch in the add-on preferences, or set "
+              f"{ENV_VAR} to a Python 3.11 with {', '.join(RUNTIME_REQUIREMENTS)}")
 
 
 class RuntimeInstallError(RuntimeError):
@@ -149,6 +152,11 @@ def _has_torch(python: str) -> bool:
         return False
 
 
+def torch_in_process() -> bool:
+    """Whether this Python can import torch (bpy as a module with the project's requirements; not Blender)."""
+    return importlib.util.find_spec("torch") is not None
+
+
 def find_torch_python(preferred: str = "", user_dir=None, tried: list | None = None) -> tuple[str, str] | None:
     """(python, where it came from) for the first Python that imports what training needs (PROBE), or None. `tried`
     collects 'where: python' for every candidate that exists but lacks them (for the message)."""
@@ -160,7 +168,7 @@ def find_torch_python(preferred: str = "", user_dir=None, tried: list | None = N
     runtime = installed_runtime(user_dir)
     if runtime is not None:
         candidates.append((str(runtime), "the installed training runtime"))
-    if importlib.util.find_spec("torch") is not None:
+    if torch_in_process():
         candidates.append((sys.executable, "this Python"))
     candidates += [(shutil.which(name) or "", f"{name} on PATH") for name in ("python3.11", "python3")]
     for python, origin in candidates:

@@ -55,9 +55,8 @@ def draw_sg_lightfield(layout, context):
 def _draw_training_runtime(layout, context):
     """Where training will run, from cheap checks only (no subprocess in a draw call)."""
     from . import operators, training_runtime
-    from .pipeline import torch_in_process
 
-    if torch_in_process():
+    if training_runtime.torch_in_process():
         return
     running = operators.runtime_install_running()
     if running is not None:

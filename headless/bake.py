@@ -22,10 +22,10 @@ if __name__ == "__main__" and __package__ in (None, "", "headless"):  # started 
 
     run_in_package(__file__)
 
+from ..bake_directory.bake_plan import STAGES as ALL_STAGES  # noqa: E402
 from ..bake_directory.bake_plan import PRESETS, ROUGH_MATERIALS, BakeCancelled, BakeInputError, BakeSettings  # noqa: E402
 from ..bake_directory.exr_io import ExrError  # noqa: E402
 
-ALL_STAGES = ("capture", "render", "train", "apply", "evaluate")
 IMPLEMENTED_STAGES = ALL_STAGES  # the plan is always made; stages are added here as they land
 
 

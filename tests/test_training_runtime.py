@@ -2,7 +2,6 @@
 (online from the package index this machine reaches, or offline from a folder of wheels), a bake trains through it,
 Remove deletes it; a cancelled install leaves nothing that counts as a runtime."""
 import json
-import os
 import subprocess
 import time
 
@@ -13,7 +12,8 @@ from sg_lightfield.bake_directory.bake_plan import BakeSettings
 from sg_lightfield.blender_addon import training_runtime as tr
 from sg_lightfield.blender_addon.apply import remove_bake
 from sg_lightfield.blender_addon.demo_scenes import build_demo_scene
-from sg_lightfield.blender_addon.pipeline import TORCH_HELP, BakeJob
+from sg_lightfield.blender_addon.pipeline import BakeJob
+from sg_lightfield.blender_addon.training_runtime import TORCH_HELP
 
 
 @pytest.mark.parametrize("system, nvidia, options, accelerator", [
