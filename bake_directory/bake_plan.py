@@ -41,14 +41,20 @@ LOBE_REFIT_STEPS = 150
 # Objects with only irradiance lightmaps need the light field's cosine-weighted mean, not its detail: Production
 # renders them at 64 spp (R = 32: 4x Preview's samples per texel), not 256 (docs/design-additions.md section 23).
 LIGHTMAP_SAMPLES_PRODUCTION = 64
+# Diffuse light from a Cycles diffuse bake at this many times the texel density (capture stage, irradiance_detail.py)
+# instead of the light fields' cosine-weighted mean at the texels: lamp shadows and contact shading at 4x finer
+# pixels for a bake of a few seconds. The samples per pixel of that bake, and its cost in paths per pixel sample.
+IRRADIANCE_DETAIL_SAMPLES = 128
+IRRADIANCE_DETAIL_MAX = 8
+IRRADIANCE_DETAIL_PATHS_PER_SAMPLE = 1.1  # demo:materials at Draft: 2.3 M pixel samples in 10 s
 PRESETS = {
     "draft": dict(texel_density=4.0, lightfield_resolution=16, samples=16, sg_count=16, training_budget_s=30.0,
-                  lobe_refit_steps=LOBE_REFIT_STEPS, lightmap_samples=0),
+                  lobe_refit_steps=LOBE_REFIT_STEPS, lightmap_samples=0, irradiance_detail=4),
     "preview": dict(texel_density=8.0, lightfield_resolution=16, samples=64, sg_count=16, training_budget_s=120.0,
-                    lobe_refit_steps=LOBE_REFIT_STEPS, lightmap_samples=0),
+                    lobe_refit_steps=LOBE_REFIT_STEPS, lightmap_samples=0, irradiance_detail=4),
     "production": dict(texel_density=16.0, lightfield_resolution=32, samples=256, sg_count=16, uniform_sg_count=True,
                        training_budget_s=600.0, lobe_refit_steps=LOBE_REFIT_STEPS,
-                       lightmap_samples=LIGHTMAP_SAMPLES_PRODUCTION),
+                       lightmap_samples=LIGHTMAP_SAMPLES_PRODUCTION, irradiance_detail=2),
 }
 
 # Camera paths per second of the atlas render on this machine class (2 cores), measured by `make bench` on
@@ -99,7 +105,9 @@ STAGE_SETTINGS = {
     "train": {"texel_density", "lightfield_resolution", "samples", "lightmap_samples", "sg_count", "uniform_sg_count",
               "training_budget_s", "lobe_refit_steps"},
 }
-STAGE_SETTINGS["apply"] = STAGE_SETTINGS["evaluate"] = STAGE_SETTINGS["train"]
+# The irradiance detail image is the capture's, in a file of its own that records the detail it was baked at: changing
+# the detail bakes it again and applies again, and keeps the light fields and their training.
+STAGE_SETTINGS["apply"] = STAGE_SETTINGS["evaluate"] = STAGE_SETTINGS["train"] | {"irradiance_detail"}
 
 
 class BakeInputError(ValueError):
@@ -123,6 +131,7 @@ class BakeSettings:
     lobe_refit_steps: int = 0  # Adam steps refitting SG axes, sharpness and amplitudes through the glossy (0: off)
     rough_materials: str = "irradiance"  # rough dielectrics: an irradiance lightmap, or the renderer's own lighting
     device: str = "cpu"
+    irradiance_detail: int = 1  # diffuse light at this many times the texel density (1: from the light fields)
 
     @property
     def lightmap_pass_samples(self) -> int:
@@ -152,6 +161,8 @@ class BakeSettings:
             (1 <= self.training_budget_s <= 7 * 24 * 3600, f"training budget {self.training_budget_s} s is outside 1 s..7 days"),
             (0 <= self.lobe_refit_steps <= 100_000, f"lobe refit steps {self.lobe_refit_steps} is outside 0..100000"),
             (self.device in ("cpu", "cuda"), f"device {self.device!r} is not 'cpu' or 'cuda'"),
+            (1 <= self.irradiance_detail <= IRRADIANCE_DETAIL_MAX,
+             f"irradiance detail {self.irradiance_detail} is outside 1 (from the light fields)..{IRRADIANCE_DETAIL_MAX}"),
             (self.rough_materials in ROUGH_MATERIALS,
              f"rough materials {self.rough_materials!r} is not one of {', '.join(ROUGH_MATERIALS)}"),
         ]
@@ -262,6 +273,14 @@ class BakePlan:
             rays += self.texels * r * r / 2  # one primary ray per pixel for L_E * V
         return rays / ATLAS_RAYS_PER_SECOND_CPU
 
+    def irradiance_detail_estimate_s(self) -> float:
+        """The capture's Cycles diffuse bake of the irradiance detail image (0 when the detail is 1)."""
+        detail = self.settings.irradiance_detail
+        if detail <= 1 or not self.baked_objects:
+            return 0.0
+        return (self.texels * detail * detail * IRRADIANCE_DETAIL_SAMPLES * IRRADIANCE_DETAIL_PATHS_PER_SAMPLE
+                / ATLAS_RAYS_PER_SECOND_CPU)
+
     def stage_estimates_s(self, reference_samples: int = 0, evaluate_pixels: int = 0) -> dict[str, float]:
         """Expected seconds of each stage on 2 CPU cores: the progress bar's weights, and the ETA of the stages not
         begun. evaluate_pixels: the evaluate stage's pixels over all its views."""
@@ -269,7 +288,7 @@ class BakePlan:
         refitted = sum(o.texels for o in self.baked_objects
                        if any(m.glossy and (m.roughness >= least or "Roughness" in m.textured) for m in o.materials))
         refits = refitted * (AMPLITUDE_REFIT_S_PER_TEXEL + LOBE_REFIT_S_PER_TEXEL_STEP * self.settings.lobe_refit_steps)
-        return {"capture": 0.5 + CAPTURE_S_PER_TEXEL * self.texels,
+        return {"capture": 0.5 + CAPTURE_S_PER_TEXEL * self.texels + self.irradiance_detail_estimate_s(),
                 "render": self.render_estimate_s(),
                 "train": self.settings.training_budget_s + refits,
                 "apply": 1.0 + APPLY_S_PER_TEXEL * self.texels,
@@ -300,6 +319,10 @@ class BakePlan:
                          f"{self.settings.lightmap_pass_samples} samples per pixel (irradiance needs their mean), "
                          f"the others {self.settings.samples}")
         if self.baked_objects:
+            detail = self.settings.irradiance_detail
+            lines.append(f"diffuse light: a Cycles diffuse bake at {detail}x the texel density "
+                         f"({detail * self.settings.texel_density:g} pixels/m, {IRRADIANCE_DETAIL_SAMPLES} samples)"
+                         if detail > 1 else "diffuse light: the light fields' irradiance at the texels")
             metals = self.glossy_bounce_objects
             lines.append("light fields rendered with one diffuse bounce fewer than the scene allows"
                          + (f" (metals {', '.join(metals)}: one glossy bounce fewer)" if metals else "")

@@ -9,7 +9,9 @@ deletes what the bake made (copies, node group, image, lightmap UV layers and ti
 Diffuse comes from an irradiance tile computed from the rendered light fields (plus the L_E*V images of the
 sky when IWEV holds the environment) by quadrature (exact up to the light-field resolution and one texture
 lookup), not from the SGs: the bake measures both and reports
-how far the SG irradiance is from it (report.json: apply.irradiance_from_sgs_rel_error).
+how far the SG irradiance is from it (report.json: apply.irradiance_from_sgs_rel_error). With an irradiance detail
+above 1 (every preset) it comes instead from the capture's detail image (irradiance_detail.py), read at the same atlas
+UV; apply reports the ratio of its texel means' total to the light fields' (apply.irradiance_detail_over_lightfields).
 """
 from __future__ import annotations
 
@@ -22,7 +24,7 @@ import numpy as np
 
 from ..bake_directory.bake_plan import BakeInputError
 from ..bake_directory.bake_report import update_report
-from ..bake_directory.exr_io import write_exr
+from ..bake_directory.exr_io import read_exr, write_exr
 from ..bake_directory.lightfield_tiles import read_images
 from ..shaders.node_group import (GROUP_NAME, UNIFORM_BLOCK_LIMIT, VERSION_KEY, SGTextureLayout, build_node_group,
                                   eevee_uniform_bytes, flattened_node_count, material_output)
@@ -33,6 +35,8 @@ from ..bake_directory.sg_textures import (is_sh_texture, pack_tiles, read_sg_tex
                                sg_texture_path)
 from ..bake_directory.texel_maps import channels, read_texel_maps, smooth_over_texels, texels_of_objects
 from . import lightmap_modifier
+from .irradiance_detail import DETAIL_FILE, texel_means
+from .scene_analysis import active_scene, bake_targets
 from .capture import BLOCK_KEY, LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, remove_lightmap_uvs
 from .surface_shaders import (COPY_KEY, COPY_SUFFIX, LeafInputs, copy_material, remove_unused_group_copies,
                               rewrite_surface)
@@ -40,6 +44,7 @@ from .surface_shaders import (COPY_KEY, COPY_SUFFIX, LeafInputs, copy_material, 
 BAKE_RECORD_KEY = "sglf_bake"  # on the scene: JSON {object: {slot index: original material}}
 FAKE_USER_KEY = "sglf_fake_user_set"  # on an original: we set its fake user (and clear it again)
 IMAGE_NAME = "SG Lightfield textures"
+DETAIL_IMAGE_NAME = "SG Lightfield irradiance"
 PACKED_FILE = "sg_packed.exr"
 
 
@@ -52,10 +57,27 @@ def irradiance_from_lightfields(images: np.ndarray, normals: np.ndarray) -> np.n
     return np.einsum("tp,tpc->tc", cosine, images.reshape(len(images), -1, images.shape[-1]).astype(np.float64))
 
 
+def read_irradiance_detail(out_dir: Path, plan) -> tuple[Path | None, np.ndarray | None]:
+    """The capture's irradiance detail image (path, (H * detail, W * detail, 3) E) when the settings ask for one."""
+    detail = plan.settings.irradiance_detail
+    if detail <= 1:
+        return None, None
+    path = Path(out_dir) / DETAIL_FILE
+    if not path.is_file():
+        raise BakeInputError(f"{path}: missing; the settings ask for irradiance detail {detail}: run the capture stage")
+    irradiance, _, metadata = read_exr(path)
+    if metadata.get("plan_hash") != plan.stage_hash("capture") or metadata.get("detail") != str(detail):
+        raise BakeInputError(f"{path}: made for another capture or detail ({metadata.get('detail')}, the settings ask "
+                             f"for {detail}); run the capture stage again")
+    return path, irradiance
+
+
 def build_packed_image(out_dir: Path, plan) -> tuple[SGTextureLayout, Path, dict]:
-    """Pack SG + irradiance tiles into DIR/sg_packed.exr (half RGBA); returns layout, path and measurements."""
+    """Pack SG + irradiance tiles into DIR/sg_packed.exr (half RGBA); returns layout, path, measurements, the
+    environment's SGs and the irradiance detail image's path (None when the irradiance is a tile)."""
     atlas, texel_info = read_texel_maps(out_dir, plan.stage_hash("capture"))
     shape = atlas.shape[:2]
+    detail_path, detail = read_irradiance_detail(out_dir, plan)
     lightfield = sg_texture_path(out_dir, "lightfield")
     encoded = bool(plan.sg_objects)  # else only irradiance lightmaps: no SG texture
     if encoded and not Path(lightfield).is_file():
@@ -105,7 +127,8 @@ def build_packed_image(out_dir: Path, plan) -> tuple[SGTextureLayout, Path, dict
             raise BakeInputError(f"{env_path}: made for another plan; run the train stage again")
         env_sgs = [tuple(sg) for sg in env["sgs"]]
     layout = SGTextureLayout(n, iwev_count=iwev_count, has_irradiance=True, atlas_size=(shape[1], shape[0]),
-                             sh_count=coefficients.shape[2] if sh else 0)
+                             sh_count=coefficients.shape[2] if sh else 0,
+                             irradiance_detail=plan.settings.irradiance_detail if detail is not None else 1)
     for j in range(layout.sh_count):
         tiles[("sh", j)] = np.concatenate([coefficients[..., j, :], np.zeros(shape + (1,))], -1)
     for j in range(iwev_count):
@@ -116,21 +139,27 @@ def build_packed_image(out_dir: Path, plan) -> tuple[SGTextureLayout, Path, dict
     for j in range(n):
         tiles[("sg", j)] = np.concatenate([axis[..., j, :], encode_sharpness(sharpness[..., j])[..., None]], -1)
         tiles[("amp", j)] = np.concatenate([amplitude[..., j, :], np.zeros(shape + (1,))], -1)
-    tiles[("irradiance", 0)] = np.concatenate([scatter_dilated(shape, texels, lightmap), np.ones(shape + (1,))], -1)
+    measured = {}
+    if detail is None:
+        tiles[("irradiance", 0)] = np.concatenate([scatter_dilated(shape, texels, lightmap), np.ones(shape + (1,))], -1)
+    else:  # two independent estimates of the texels' irradiance: Cycles' bake, the light fields' quadrature
+        means = texel_means(detail, np.ones(detail.shape[:2], bool), plan.settings.irradiance_detail, texels)
+        total = float(irradiance.sum())
+        measured = {"irradiance_detail_over_lightfields": float(means.sum()) / total if total > 0 else 1.0}
     path = write_exr(out_dir / PACKED_FILE, pack_tiles(layout, tiles, shape), precision="half",
                      channels=["R", "G", "B", "A"], metadata={"plan_hash": plan.stage_hash("train"),
                                                               "layout": json.dumps(layout.to_dict())})
-    measured = {"irradiance_from_sgs_rel_error_median": float(np.median(rel)) if len(rel) else 0.0,
-                "irradiance_from_sgs_rel_error_p95": float(np.percentile(rel, 95)) if len(rel) else 0.0,
-                "irradiance_from_sgs_rel_error_max": float(rel.max()) if len(rel) else 0.0}
-    return layout, path, measured, env_sgs
+    measured.update({"irradiance_from_sgs_rel_error_median": float(np.median(rel)) if len(rel) else 0.0,
+                     "irradiance_from_sgs_rel_error_p95": float(np.percentile(rel, 95)) if len(rel) else 0.0,
+                     "irradiance_from_sgs_rel_error_max": float(rel.max()) if len(rel) else 0.0})
+    return layout, path, measured, env_sgs, detail_path
 
 
-def _load_image(path: Path, pack: bool):
-    image = bpy.data.images.get(IMAGE_NAME)
+def _load_image(path: Path, pack: bool, name: str = IMAGE_NAME):
+    image = bpy.data.images.get(name)
     if image is None:
         image = bpy.data.images.load(str(path), check_existing=False)
-        image.name = IMAGE_NAME
+        image.name = name
     else:
         if image.packed_file is not None:
             image.unpack(method="REMOVE")
@@ -250,12 +279,11 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
     """Write the bake into the scene's materials. Returns what was done (also merged into report.json)."""
     start = time.perf_counter()
     out_dir = Path(out_dir)
-    missing = [o.name for o in plan.baked_objects if scene.objects.get(o.name if not o.instancer else o.instancer) is None
-               or (o.instancer and bpy.data.objects.get(o.source) is None)]
-    if missing:
-        raise BakeInputError(f"objects {missing} of the plan are not in scene '{scene.name}'; make a new plan")
-    layout, path, measured, env_sgs = build_packed_image(out_dir, plan)
+    with active_scene(scene) as depsgraph:
+        targets = bake_targets(scene, plan.baked_objects, depsgraph)
+    layout, path, measured, env_sgs, detail_path = build_packed_image(out_dir, plan)
     image = _load_image(path, pack_images)
+    detail_image = _load_image(detail_path, pack_images, DETAIL_IMAGE_NAME) if detail_path else None
     groups = {}  # SG count (None: irradiance only) -> the node group evaluating the packed image
 
     def evaluated_count(planned: int) -> int:
@@ -271,22 +299,23 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
         count = evaluated_count(planned) if planned else None
         if count not in groups:
             if count is None:
-                fewer, name = SGTextureLayout(0, 0, True, layout.atlas_size, tiles=layout.tiles), \
-                    f"{GROUP_NAME} (irradiance)"
+                fewer, name = SGTextureLayout(0, 0, True, layout.atlas_size, tiles=layout.tiles,
+                                              irradiance_detail=layout.irradiance_detail), f"{GROUP_NAME} (irradiance)"
             elif layout.sh_count:
                 fewer, name = layout, f"{GROUP_NAME} (SH L2)"
             else:
                 fewer = SGTextureLayout(count, min(count, layout.iwev_count), layout.has_irradiance, layout.atlas_size,
-                                        tiles=layout.tiles)  # the same tiles: only the first `count` SGs are read
+                                        tiles=layout.tiles,  # the same tiles: only the first `count` SGs are read
+                                        irradiance_detail=layout.irradiance_detail)
                 name = GROUP_NAME if count == layout.sg_count else f"{GROUP_NAME} ({count} SGs)"
-            groups[count] = build_node_group(image, fewer, env_sgs, name)
+            groups[count] = build_node_group(image, fewer, env_sgs, name, irradiance_image=detail_image)
         return groups[count]
 
     record = json.loads(scene.get(BAKE_RECORD_KEY, "{}"))
     baked_materials, switched = set(), set()
-    for object_plan in plan.baked_objects:
-        obj = bpy.data.objects[object_plan.source] if object_plan.instancer else scene.objects[object_plan.name]
-        holder = scene.objects[object_plan.instancer] if object_plan.instancer else obj  # where its tile is
+    for object_plan, target in zip(plan.baked_objects, targets):
+        obj = target.obj
+        holder = target.instancer or obj  # where its tile is
         if OFFSET_KEY not in holder and BLOCK_KEY not in holder and lightmap_modifier.instance_tiles_of(holder) is None:
             raise BakeInputError(f"'{object_plan.name}': not captured (no lightmap tile); run the capture stage first")
         if obj.name in switched:  # another instance of the same object: its slots are switched already
@@ -327,6 +356,7 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
             round(1 - sum(sg_counts.values()) / max(layout.sg_count * len(sg_counts), 1), 3),
             "encoder": "sh_l2" if layout.sh_count else "sg",
             "image": image.name, "image_packed": bool(image.packed_file), "layout": layout.to_dict(),
+            "irradiance_image": detail_image.name if detail_image else None,
             "eevee_uniform_bytes": uniform_bytes, "eevee_uniform_limit": UNIFORM_BLOCK_LIMIT, "warnings": warnings,
             **measured}
     update_report(out_dir, plan.stage_hash("capture"), timings_s={"apply": seconds}, apply=info)
@@ -379,8 +409,9 @@ def remove_bake(scene) -> int:
     still_baked = any(BAKE_RECORD_KEY in s for s in bpy.data.scenes)
     if not still_baked:
         _remove_unused_groups()
-        image = bpy.data.images.get(IMAGE_NAME)
-        if image is not None and image.users == 0:
-            bpy.data.images.remove(image)
+        for name in (IMAGE_NAME, DETAIL_IMAGE_NAME):
+            image = bpy.data.images.get(name)
+            if image is not None and image.users == 0:
+                bpy.data.images.remove(image)
     remove_lightmap_uvs(scene)
     return restored

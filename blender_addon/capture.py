@@ -35,9 +35,9 @@ import numpy as np
 from mathutils import Vector
 from mathutils.bvhtree import BVHTree
 
-from ..bake_directory.bake_plan import BakeCancelled, BakeInputError, write_json_atomic
+from ..bake_directory.bake_plan import IRRADIANCE_DETAIL_SAMPLES, BakeCancelled, BakeInputError, write_json_atomic
 from ..bake_directory.bake_report import update_report
-from ..bake_directory.exr_io import write_exr
+from ..bake_directory.exr_io import ExrError, read_exr_metadata, write_exr
 from ..bake_directory.texel_maps import (CAPTURE_PICTURES, CHANNEL, FLAG_BURIED, FLAG_CENTRE_INSIDE, FLAG_COVERED,
                                   FLAG_GUTTER, FLAG_PUSHED_OUT, TEXEL_CHANNELS, TEXELS_FILE, TEXELS_JSON,
                                   save_capture_pictures)
@@ -46,6 +46,7 @@ from .scene_analysis import (active_scene, bake_targets, loop_triangle_arrays, p
                              transform_points, triangle_areas, unbaked)
 from . import lightmap_modifier
 from .lightmap_modifier import user_modifiers
+from .irradiance_detail import DETAIL_FILE, bake_irradiance_detail, filled
 from .surface_probe import measure_surfaces
 
 LIGHTMAP_LAYER = "SGLightmap"
@@ -608,9 +609,6 @@ def capture(scene, plan, out_dir, *, lightmap_uv_layer: str = "", progress=_noop
     """Run the capture stage for `plan` on `scene`, writing texel maps into `out_dir`."""
     start = time.perf_counter()
     out_dir = Path(out_dir)
-    missing = [o.name for o in plan.baked_objects if not o.instancer and scene.objects.get(o.name) is None]
-    if missing:
-        raise BakeInputError(f"objects {missing} of the plan are not in scene '{scene.name}'; make a new plan")
     warnings: list[str] = []
     progress(0.0, "lightmap UVs")
     with active_scene(scene) as depsgraph:
@@ -645,6 +643,7 @@ def capture(scene, plan, out_dir, *, lightmap_uv_layer: str = "", progress=_noop
         maps["surface"], measured, probe_info = measure_surfaces(
             scene, targets, tiles, (atlas_h, atlas_w), maps["object_id"], lambda material: material.name in textured)
         maps["measured"] = measured & covered
+        detail = _irradiance_detail(scene, plan, out_dir, targets, tiles, (atlas_h, atlas_w), progress, should_cancel)
         progress(0.5, "push-out of texels inside geometry")
         bvh, scene_size = scene_bvh(scene, bpy.context.evaluated_depsgraph_get())  # the probes changed the scene
     rows, cols = np.nonzero(covered)
@@ -677,9 +676,36 @@ def capture(scene, plan, out_dir, *, lightmap_uv_layer: str = "", progress=_noop
     update_report(out_dir, plan.stage_hash("capture"), timings_s={"capture": result.seconds}, texels=result.texels,
                   coverage_percent=result.coverage_percent, pushed_out_texels=result.pushed_out_texels,
                   buried_texels=result.buried_texels, atlas=[atlas_w, atlas_h], sg_count=plan.max_sg_count,
-                  capture_pictures=list(CAPTURE_PICTURES), surface_probe=probe_info)
+                  capture_pictures=list(CAPTURE_PICTURES), surface_probe=probe_info, irradiance_detail=detail)
     progress(1.0, f"{result.texels} texels")
     return result
+
+
+def _irradiance_detail(scene, plan, out_dir, targets, tiles, atlas_shape, progress, should_cancel) -> dict:
+    """Bake DIR/irradiance_detail.exr when the settings ask for a detail above 1 (else remove a stale one): the diffuse
+    light of the baked surfaces at `irradiance_detail` pixels per texel. Its metadata records the capture's plan hash
+    and the detail, which the apply stage checks; a file that matches them is kept (a capture run again, as a farm's
+    last task does, or a resumed bake), as finished light-field tiles are."""
+    path = Path(out_dir) / DETAIL_FILE
+    detail = plan.settings.irradiance_detail
+    if detail <= 1 or not targets:
+        path.unlink(missing_ok=True)
+        return {"detail": 1}
+    wanted = {"plan_hash": plan.stage_hash("capture"), "detail": str(detail), "samples": str(IRRADIANCE_DETAIL_SAMPLES),
+              "kind": "irradiance_detail"}
+    if path.is_file():
+        try:
+            found = read_exr_metadata(path)
+        except ExrError:  # unreadable: baked again
+            found = {}
+        if all(found.get(k) == v for k, v in wanted.items()):
+            return {"detail": detail, "samples": IRRADIANCE_DETAIL_SAMPLES, "file": DETAIL_FILE, "kept": True}
+    irradiance, written, info = bake_irradiance_detail(
+        scene, targets, tiles, atlas_shape, detail,
+        progress=lambda fraction, message: progress(0.45 + 0.05 * fraction, message), should_cancel=should_cancel)
+    write_exr(path, filled(irradiance, written, 2 * detail), precision="half", channels=["R", "G", "B"],
+              metadata=wanted)
+    return {**info, "file": DETAIL_FILE, "pixels_written": int(np.count_nonzero(written))}
 
 
 def _texel_atlas(maps, valid, materials):

@@ -31,7 +31,8 @@ def settings_from_panel(panel) -> BakeSettings:
                                     sg_count=16 if panel.sg_count_auto else panel.sg_count,
                                     uniform_sg_count=not panel.sg_count_auto,
                                     training_budget_s=panel.training_budget_s,
-                                    lobe_refit_steps=panel.lobe_refit_steps, device=device)
+                                    lobe_refit_steps=panel.lobe_refit_steps, device=device,
+                                    irradiance_detail=panel.irradiance_detail)
 
 
 def settings_path(text: str, what: str) -> str:

@@ -46,6 +46,10 @@ class SGLightfieldSettings(bpy.types.PropertyGroup):
                                   description="Steps refitting the SGs' axes, sharpness and amplitudes through the "
                                   "glossy shading after training (0: off; every preset uses 150)",
                                   default=150, min=0, soft_max=1000, max=100000)
+    irradiance_detail: IntProperty(name="Irradiance Detail",
+                                   description="Diffuse light at this many times the texel density, baked by Cycles "
+                                   "(sharper lamp shadows; 1: the light fields' irradiance at the texels)",
+                                   default=4, min=1, max=8)
     rough_materials: EnumProperty(
         name="Rough Materials", default="IRRADIANCE",
         description="Dielectrics of roughness 0.6 and above: what lights them in the baked scene",

@@ -249,15 +249,18 @@ class BakeTarget:
 
 
 def bake_targets(scene, object_plans, depsgraph) -> list:
-    """The BakeTarget of each ObjectPlan, found in the evaluated scene; one clear error where the scene changed."""
+    """The BakeTarget of each ObjectPlan, found in the evaluated scene; one clear error where the scene changed (every
+    object of the plan that is gone, an instance's instancer or instanced object included, named at once)."""
     from mathutils import Matrix
 
+    missing = [o.name for o in object_plans if scene.objects.get(o.instancer or o.name) is None
+               or (o.instancer and bpy.data.objects.get(o.source) is None)]
+    if missing:
+        raise BakeInputError(f"objects {missing} of the plan are not in scene '{scene.name}'; make a new plan")
     instancers, targets = None, []
     for plan in object_plans:
         if not plan.instancer:
-            obj = scene.objects.get(plan.name)
-            if obj is None:
-                raise BakeInputError(f"object '{plan.name}' of the plan is not in scene '{scene.name}'; make a new plan")
+            obj = scene.objects[plan.name]
             targets.append(BakeTarget(plan.name, obj, obj.matrix_world.copy()))
             continue
         instancers = instances_by_instancer(depsgraph) if instancers is None else instancers

@@ -59,11 +59,13 @@ def _probe_material(original, name: str):
                           lambda inputs, node: (0.0, 0.0, 0.0) if node.type in KEPT_SHADERS else _quantity(inputs, name))
 
 
-def _bake_tile(scene, target, tile, image, material_for_slot) -> np.ndarray:
-    """EMIT-bake the target into `image` (resized to its tile) with each slot's material swapped for
-    material_for_slot(original) (which must hold an active Image Texture node; its image is set here); the slots are
-    restored before returning. Returns (h, w, 3), row 0 = the tile's top row."""
-    x, y, w, h = (int(v) for v in tile.pixel_rect)
+def bake_tile(scene, target, tile, image, material_for_slot, *, bake_type="EMIT", pass_filter=frozenset(),
+               scale: int = 1, margin: int = EDGE_MARGIN) -> np.ndarray:
+    """Bake the target (`bake_type`, with `pass_filter`) into `image` (resized to its tile, `scale` pixels per texel)
+    with each slot's material swapped for material_for_slot(original) (which must hold an active Image Texture node;
+    its image is set here); the slots are restored before returning. Returns (h, w, 4) RGBA, row 0 = the tile's top
+    row; alpha is 0 where the bake wrote nothing."""
+    x, y, w, h = (int(v) * scale for v in tile.pixel_rect)
     if tuple(image.size) != (w, h):
         image.scale(w, h)
     undo = []
@@ -81,14 +83,14 @@ def _bake_tile(scene, target, tile, image, material_for_slot) -> np.ndarray:
                                            object=baked, selected_objects=[baked],
                                            selected_editable_objects=[baked]), quiet_stdout():
                 # texels whose centre misses every triangle (chart edges) get their nearest baked neighbour
-                bpy.ops.object.bake(type="EMIT", uv_layer=tile.uv_layer, margin=EDGE_MARGIN, margin_type="EXTEND",
-                                    use_clear=True, target="IMAGE_TEXTURES")
+                bpy.ops.object.bake(type=bake_type, pass_filter=set(pass_filter), uv_layer=tile.uv_layer,
+                                    margin=margin, margin_type="EXTEND", use_clear=True, target="IMAGE_TEXTURES")
         finally:
             for slot, material in reversed(undo):
                 slot.material = material
     pixels = np.empty(w * h * 4, np.float32)
     image.pixels.foreach_get(pixels)
-    return pixels.reshape(h, w, 4)[::-1, :, :3]  # image rows from the bottom, atlas rows from the top
+    return pixels.reshape(h, w, 4)[::-1]  # image rows from the bottom, atlas rows from the top
 
 
 @contextlib.contextmanager
@@ -117,16 +119,16 @@ def _bake_object(scene, target):
         bpy.data.meshes.remove(mesh)
 
 
-class _CyclesBakeSettings:
-    """Cycles with PROBE_SAMPLES samples and no denoising for the block; the scene's settings come back after."""
+class CyclesBakeSettings:
+    """Cycles with `samples` (PROBE_SAMPLES) and no denoising for the block; the scene's settings come back after."""
 
-    def __init__(self, scene):
-        self.scene = scene
+    def __init__(self, scene, samples: int = PROBE_SAMPLES):
+        self.scene, self.samples = scene, samples
 
     def __enter__(self):
         render, cycles = self.scene.render, self.scene.cycles
         self.saved = (render.engine, cycles.samples, cycles.use_denoising)
-        render.engine, cycles.samples, cycles.use_denoising = "CYCLES", PROBE_SAMPLES, False
+        render.engine, cycles.samples, cycles.use_denoising = "CYCLES", self.samples, False
         return self
 
     def __exit__(self, *exc):
@@ -160,13 +162,13 @@ def measure_surfaces(scene, targets, tiles, atlas_shape, object_ids, should_meas
         return material_for_slot
 
     try:
-        with _CyclesBakeSettings(scene):
+        with CyclesBakeSettings(scene):
             for target, tile in chosen:
                 x, y, w, h = tile.pixel_rect
                 mine = object_ids[y:y + h, x:x + w] == tile.id
                 block = values[y:y + h, x:x + w]
                 for k, name in enumerate(PASSES):
-                    baked = _bake_tile(scene, target, tile, image, probe_for(name))
+                    baked = bake_tile(scene, target, tile, image, probe_for(name))[..., :3]
                     if k == 0:
                         block[mine, 0:2] = baked[mine][:, :2]
                     else:
@@ -192,7 +194,7 @@ def mean_of_links(scene, target, tile, object_ids, material, inputs) -> dict:
     image = bpy.data.images.new(PROBE_IMAGE, 4, 4, alpha=True, float_buffer=True)
     made, means = [], {}
     try:
-        with _CyclesBakeSettings(scene):
+        with CyclesBakeSettings(scene):
             for node_name, identifier in inputs:
                 def material_for_slot(original, node_name=node_name, identifier=identifier):
                     copy = original.copy()
@@ -207,7 +209,7 @@ def mean_of_links(scene, target, tile, object_ids, material, inputs) -> dict:
                     tree.nodes.active = tree.nodes.new("ShaderNodeTexImage")
                     return copy
 
-                baked = _bake_tile(scene, target, tile, image, material_for_slot)
+                baked = bake_tile(scene, target, tile, image, material_for_slot)[..., :3]
                 means[(node_name, identifier)] = tuple(float(v) for v in baked[mine].mean(axis=0))
     finally:
         for copy in made:

@@ -23,6 +23,7 @@ def draw_sg_lightfield(layout, context):
     sub.prop(settings, "sg_count")
     col.prop(settings, "training_budget_s")
     col.prop(settings, "lobe_refit_steps")
+    col.prop(settings, "irradiance_detail")
     layout.prop(settings, "rough_materials")
     layout.prop(settings, "device")
     layout.prop(settings, "output_dir")

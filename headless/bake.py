@@ -35,8 +35,8 @@ def script_args(argv: list[str]) -> list[str]:
 
 
 SETTINGS_FILE_OPTIONS = ("preset", "texel-density", "lightfield-resolution", "samples", "lightmap-samples", "sg-count",
-                         "uniform-sg-count", "training-budget", "lobe-refit-steps", "rough-materials", "device",
-                         "midpoints", "reference-samples", "tile-megapixels", "external-images", "lightmap-uv")
+                         "uniform-sg-count", "training-budget", "lobe-refit-steps", "irradiance-detail",
+                         "rough-materials", "device", "midpoints", "reference-samples", "tile-megapixels", "external-images", "lightmap-uv")
 
 
 def _settings_arguments(parser: argparse.ArgumentParser, path: str) -> list[str]:
@@ -87,6 +87,9 @@ def parse_args(args: list[str]) -> argparse.Namespace:
     p.add_argument("--training-budget", type=float, dest="training_budget_s")
     p.add_argument("--lobe-refit-steps", type=int, help="Adam steps refitting the SGs' axes, sharpness and "
                    "amplitudes through the glossy shading after training (0: off; every preset: 150)")
+    p.add_argument("--irradiance-detail", type=int, help="diffuse light at this many times the texel density, baked "
+                   "by Cycles at capture (1: the light fields' irradiance at the texels; Draft, Preview: 4; "
+                   "Production: 2)")
     p.add_argument("--rough-materials", choices=ROUGH_MATERIALS, default="irradiance",
                    help="dielectrics of roughness >= 0.6: an irradiance lightmap from the same light field, or the "
                    "renderer's own lighting")
@@ -292,7 +295,7 @@ def run(ns, reporter: Reporter) -> int:
         samples=ns.samples, lightmap_samples=ns.lightmap_samples, sg_count=ns.sg_count,
         uniform_sg_count=ns.uniform_sg_count,
         training_budget_s=ns.training_budget_s, lobe_refit_steps=ns.lobe_refit_steps,
-        rough_materials=ns.rough_materials, device=ns.device)
+        rough_materials=ns.rough_materials, device=ns.device, irradiance_detail=ns.irradiance_detail)
     out = ns.out.expanduser().resolve()
     if out.exists() and not out.is_dir():
         raise BakeInputError(f"{ns.out}: exists and is not a directory")

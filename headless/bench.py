@@ -528,7 +528,8 @@ def bench_materials(out_root: Path, presets=("draft", "preview")) -> list[dict]:
                 return {k: None if v["flip"] is None else round(v["flip"], 4) for k, v in (entries or {}).items()}
 
             rows.append({"scene": "materials", "preset": preset, "variant": variant, "inputs_replaced": replaced,
-                         "bake_s": round(bake_s, 1), "total_s": round(total, 1), "flip": round(errors["flip"], 4),
+                         "irradiance_detail": job.settings.irradiance_detail,
+                         "capture_s": round(job.timings.get("capture", 0.0), 1), "bake_s": round(bake_s, 1), "total_s": round(total, 1), "flip": round(errors["flip"], 4),
                          "eevee_flip": _rounded(eevee.get("flip")), "eevee_without_bake_flip": _rounded(alone.get("flip")),
                          "without_over_with": _rounded(alone["flip"] / eevee["flip"], 2)
                          if alone.get("flip") and eevee.get("flip") else None,
@@ -544,12 +545,46 @@ def bench_materials(out_root: Path, presets=("draft", "preview")) -> list[dict]:
                   f"(ratio {row['without_over_with']}); per material with / without: "
                   + ", ".join(f"{k} {v} / {row['eevee_without_bake_flip_by_material'].get(k)}"
                               for k, v in row["eevee_flip_by_material"].items()))
-        textured, flat = rows[-2], rows[-1]
+        rows.append(_materials_detail_row(preset, out_root / f"materials_{preset}_textured", rows[-2]))
+        textured, flat = rows[-3], rows[-2]
         if textured["eevee_flip"] and flat["eevee_flip"]:
             textured["over_mean_textures"] = round(textured["eevee_flip"] / flat["eevee_flip"], 3)
             print(f"materials {preset}: EEVEE FLIP textured / mean textures {textured['over_mean_textures']} "
                   "(target <= 1.2)")
     return rows
+
+
+def _materials_detail_row(preset: str, textured_dir: Path, textured_row: dict) -> dict:
+    """The textured bake again with its diffuse light from the light fields (irradiance detail 1) instead of the
+    preset's detail image: the same light fields and SGs (capture, apply and evaluate run on a copy of the bake
+    directory), so the two rows differ only in that knob."""
+    import json
+    import shutil
+
+    from ..blender_addon.demo_scenes import build_demo_scene
+    from ..blender_addon.pipeline import BakeJob
+
+    out = textured_dir.with_name(textured_dir.name + "_detail_1")
+    shutil.rmtree(out, ignore_errors=True)
+    shutil.copytree(textured_dir, out, ignore=shutil.ignore_patterns("baked.blend", "irradiance_detail.exr"))
+    scene = build_demo_scene("materials")
+    job = BakeJob(scene, BakeSettings.from_preset(preset, irradiance_detail=1), out,
+                  stages=("capture", "apply", "evaluate"))
+    job.run()
+    errors = json.loads((out / "report.json").read_text())["errors"]
+    eevee, alone = errors.get("eevee") or {}, errors.get("eevee_without_bake") or {}
+    _discard_scene(scene)
+    row = {"scene": "materials", "preset": preset, "variant": "textured, irradiance detail 1",
+           "irradiance_detail": 1, "capture_s": round(job.timings.get("capture", 0.0), 1),
+           "flip": round(errors["flip"], 4), "eevee_flip": _rounded(eevee.get("flip")),
+           "eevee_without_bake_flip": _rounded(alone.get("flip")),
+           "eevee_flip_by_material": {k: _rounded(v["flip"]) for k, v in (eevee.get("flip_by_material") or {}).items()}}
+    detail = BakeSettings.from_preset(preset).irradiance_detail
+    print(f"materials {preset:<8} irradiance detail {detail} / 1: capture {textured_row.get('capture_s')} / "
+          f"{row['capture_s']} s; EEVEE FLIP {textured_row['eevee_flip']} / {row['eevee_flip']}; Checker Floor "
+          f"{textured_row['eevee_flip_by_material'].get('Checker Floor')} / "
+          f"{row['eevee_flip_by_material'].get('Checker Floor')}")
+    return row
 
 
 def bench_geometry(out_root: Path, preset="draft") -> list[dict]:
@@ -872,7 +907,7 @@ ENCODING_SPLIT_TEXELS = 96  # texels per sphere the encoders section splits the 
 
 
 KNOB_SWEEP = {"texel_density": (2.0, 8.0), "lightfield_resolution": (8, 32), "samples": (4, 64), "sg_count": (4, 16),
-              "training_budget_s": (15.0, 240.0), "lightmap_samples": (4, 64)}
+              "training_budget_s": (15.0, 240.0), "lightmap_samples": (4, 64), "irradiance_detail": (1, 8)}
 
 
 def bench_knobs(out_root: Path, scene_name: str = "spheres", sweep=None) -> list[dict]:

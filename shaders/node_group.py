@@ -38,12 +38,14 @@ class SGTextureLayout:
     atlas_size: tuple = (1, 1)  # (width, height) of one tile in texels
     tiles: list = field(default_factory=list)  # [(name, j)] in tile order
     sh_count: int = 0  # SH L2 coefficient tiles 'sh' j instead of SGs (the benchmark's SH baseline)
+    # > 1: the irradiance is an image of its own with this many pixels per texel (irradiance_detail.py), not a tile
+    irradiance_detail: int = 1
 
     def __post_init__(self):
         if not self.tiles:
             self.tiles = [(kind, j) for j in range(self.sg_count) for kind in ("sg", "amp")]
             self.tiles += [("sh", j) for j in range(self.sh_count)]
-            if self.has_irradiance:
+            if self.has_irradiance and self.irradiance_detail <= 1:
                 self.tiles.append(("irradiance", 0))
             self.tiles += [(kind, j) for j in range(self.iwev_count) for kind in ("iwev", "iwev_amp")]
 
@@ -60,8 +62,8 @@ class SGTextureLayout:
 
     def to_dict(self):
         return {"sg_count": self.sg_count, "sh_count": self.sh_count, "iwev_count": self.iwev_count,
-                "has_irradiance": self.has_irradiance, "atlas_size": list(self.atlas_size),
-                "tiles": [list(t) for t in self.tiles]}
+                "has_irradiance": self.has_irradiance, "irradiance_detail": self.irradiance_detail,
+                "atlas_size": list(self.atlas_size), "tiles": [list(t) for t in self.tiles]}
 
 
 SOCKET_TYPES = {"VALUE": "NodeSocketFloat", "VECTOR": "NodeSocketVector", "RGBA": "NodeSocketColor"}
@@ -404,9 +406,51 @@ def closest_texture(tree, image):
     return node
 
 
-def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GROUP_NAME):
+def _bilinear_corners(ops, u, v, width: float, height: float) -> dict:
+    """The four texel centres around (u, v) in an image of width x height texels (clamped inside it) and their
+    bilinear weights: {'corner i': Vec, 'weight i': value}, i over (0, 0), (1, 0), (0, 1), (1, 1)."""
+    texel_x, texel_y = ops.sub(ops.mul(u, width), 0.5), ops.sub(ops.mul(v, height), 0.5)
+    base_x, base_y = ops.floor(texel_x), ops.floor(texel_y)
+    tx, ty = ops.sub(texel_x, base_x), ops.sub(texel_y, base_y)
+    corners = {}
+    for i, (dx, dy) in enumerate(((0, 0), (1, 0), (0, 1), (1, 1))):
+        cx = ops.clamp(ops.mul(ops.add(base_x, dx + 0.5), 1.0 / width), 0.5 / width, 1 - 0.5 / width)
+        cy = ops.clamp(ops.mul(ops.add(base_y, dy + 0.5), 1.0 / height), 0.5 / height, 1 - 0.5 / height)
+        corners[f"corner {i}"] = Vec((cx, cy, 0.0))
+        corners[f"weight {i}"] = ops.mul(tx if dx else ops.sub(1.0, tx), ty if dy else ops.sub(1.0, ty))
+    return corners
+
+
+def _bilinear_lookup(image, columns: int, rows: int):
+    """The nested group's function: the four 'Closest' lookups of the tile of `image` (a grid of columns x rows
+    tiles) whose corner is (offset_x, offset_y), blended: {'colour', 'alpha'}. `gate` is 0, computed from what the
+    lookups must wait for (NodeOps.barrier). 'Closest' keeps renderers from mipmapping: a mip level averages
+    neighbouring tiles (colour garbage), and across a chart seam EEVEE's UV derivatives pick the coarsest level
+    (dotted dark seams, measured on the detail image with 'Linear')."""
+    def bilinear_tile(tile_ops, offset_x, offset_y, gate, **corner_sockets):
+        offset_x = tile_ops.add(offset_x, gate)
+        colour, alpha = Vec((0.0, 0.0, 0.0)), 0.0
+        for i in range(4):
+            corner = tile_ops._vec(corner_sockets[f"corner {i}"])
+            uv_in_image = Vec((tile_ops.muladd(corner[0], 1.0 / columns, offset_x),
+                               tile_ops.muladd(corner[1], 1.0 / rows, offset_y), 0.0))
+            texture = closest_texture(tile_ops.tree, image)
+            tile_ops.tree.links.new(tile_ops.vector_socket(uv_in_image), texture.inputs["Vector"])
+            weight = corner_sockets[f"weight {i}"]
+            colour = Vec(tile_ops.muladd(x, weight, total)
+                         for x, total in zip(tile_ops._vec(texture.outputs["Color"]), colour))
+            alpha = tile_ops.muladd(texture.outputs["Alpha"], weight, alpha)
+        return {"colour": colour, "alpha": alpha}
+
+    return bilinear_tile
+
+
+def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GROUP_NAME, irradiance_image=None):
     """Create or update the node group and its nested groups (`<name> / ...`); returns it. `image` is the packed SG
-    image (Non-Color, half float). The group computes the same in both renderers."""
+    image (Non-Color, half float); `irradiance_image` the irradiance detail image when layout.irradiance_detail > 1.
+    The group computes the same in both renderers."""
+    if layout.has_irradiance and layout.irradiance_detail > 1 and irradiance_image is None:
+        raise ValueError("the layout reads an irradiance detail image; pass it as irradiance_image")
     group = new_or_cleared_group(name)
     sockets = [("UV", "INPUT", "NodeSocketVector"), ("Normal", "INPUT", "NodeSocketVector"),
                ("Roughness", "INPUT", "NodeSocketFloat"), ("F0", "INPUT", "NodeSocketColor"),
@@ -428,36 +472,19 @@ def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GRO
     width, height = (float(v) for v in layout.atlas_size)
     # Shared by every tile: the four texel centres around UV (clamped inside the atlas) and their weights.
     u, v, _ = ops._vec(uv)
-    texel_x, texel_y = ops.sub(ops.mul(u, width), 0.5), ops.sub(ops.mul(v, height), 0.5)
-    base_x, base_y = ops.floor(texel_x), ops.floor(texel_y)
-    tx, ty = ops.sub(texel_x, base_x), ops.sub(texel_y, base_y)
-    corner_inputs = {}
-    for i, (dx, dy) in enumerate(((0, 0), (1, 0), (0, 1), (1, 1))):
-        cx = ops.clamp(ops.mul(ops.add(base_x, dx + 0.5), 1.0 / width), 0.5 / width, 1 - 0.5 / width)
-        cy = ops.clamp(ops.mul(ops.add(base_y, dy + 0.5), 1.0 / height), 0.5 / height, 1 - 0.5 / height)
-        corner_inputs[f"corner {i}"] = Vec((cx, cy, 0.0))
-        corner_inputs[f"weight {i}"] = ops.mul(tx if dx else ops.sub(1.0, tx), ty if dy else ops.sub(1.0, ty))
-
-    def bilinear_tile(tile_ops, offset_x, offset_y, gate, **corner_sockets):
-        """The four 'Closest' lookups of the tile whose corner in the image is (offset_x, offset_y), blended:
-        {'colour', 'alpha'}. `gate` is 0, computed from what the lookups must wait for (NodeOps.barrier)."""
-        offset_x = tile_ops.add(offset_x, gate)
-        colour, alpha = Vec((0.0, 0.0, 0.0)), 0.0
-        for i in range(4):
-            corner = tile_ops._vec(corner_sockets[f"corner {i}"])
-            uv_in_image = Vec((tile_ops.muladd(corner[0], 1.0 / columns, offset_x),
-                               tile_ops.muladd(corner[1], 1.0 / rows, offset_y), 0.0))
-            texture = closest_texture(tile_ops.tree, image)
-            tile_ops.tree.links.new(tile_ops.vector_socket(uv_in_image), texture.inputs["Vector"])
-            weight = corner_sockets[f"weight {i}"]
-            colour = Vec(tile_ops.muladd(x, weight, total)
-                         for x, total in zip(tile_ops._vec(texture.outputs["Color"]), colour))
-            alpha = tile_ops.muladd(texture.outputs["Alpha"], weight, alpha)
-        return {"colour": colour, "alpha": alpha}
+    corner_inputs = _bilinear_corners(ops, u, v, width, height)
+    bilinear_tile = _bilinear_lookup(image, columns, rows)
 
     cache = {}
 
     def lookup(kind, j):
+        if (kind, j) == ("irradiance", 0) and layout.irradiance_detail > 1 and ("irradiance", 0) not in cache:
+            # its own four texel centres, at `irradiance_detail` times the atlas' resolution
+            detail = layout.irradiance_detail
+            gate = ops.gate if ops.gate is not None else ops.zero()
+            tile = ops.call("bilinear detail", _bilinear_lookup(irradiance_image, 1, 1), offset_x=0.0, offset_y=0.0,
+                            gate=gate, **_bilinear_corners(ops, u, v, width * detail, height * detail))
+            cache[(kind, j)] = (tile["colour"], tile["alpha"])
         if (kind, j) not in cache:
             col, row = layout.tile_offset(kind, j)
             gate = ops.gate if ops.gate is not None else ops.zero()  # 0, once the previous SG is done

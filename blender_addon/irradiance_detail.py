@@ -1,0 +1,110 @@
+"""The irradiance detail image (capture stage): the diffuse light of every baked surface at `irradiance_detail` times
+the texel density, baked by Cycles.
+
+The light fields give each texel its irradiance as the cosine-weighted mean of its panorama: at Draft's 4 texels/m
+(25 cm texels) a lamp's shadow on the floor blurs over a texel or two, and EEVEE's own per-pixel shadows beat it
+(docs/decisions.md, "Diffuse light at its own resolution"). Cycles' DIFFUSE bake (direct and indirect light, not
+its colour) of a white Lambertian copy of each surface, with the material's own normal or bump map, is E / pi per
+pixel for a fraction of the light fields' cost: no directions are stored, one value per pixel. It is baked into the
+same atlas layout, `detail` pixels per texel, so the baked material reads it with the atlas UV it already computes.
+
+Same scene, same bounce budget as the light fields (the scene's: Cycles counts the baked surface's own diffuse
+scattering as the first bounce), the user's lamps and world as they are. Each object's slots are swapped for the
+white copies for its own bake and restored after; the copies are removed.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import bpy
+import numpy as np
+
+from ..bake_directory.bake_plan import IRRADIANCE_DETAIL_SAMPLES, BakeCancelled
+from ..bake_directory.texel_raster import dilate
+from .surface_probe import CyclesBakeSettings, bake_tile
+from .surface_shaders import BAKED_BSDFS, LeafInputs, copy_material, rewrite_surface
+
+DETAIL_FILE = "irradiance_detail.exr"
+DETAIL_SUFFIX = " (SG irradiance)"
+DETAIL_IMAGE = "SGLF irradiance bake"
+
+
+def white_diffuse_material(original):
+    """A copy of `original` whose baked BSDFs are each a white Diffuse BSDF with that BSDF's own normal (normal or bump
+    map), with an active Image Texture node for the bake. Returns (material, node-group copies made for it)."""
+    material = copy_material(original, DETAIL_SUFFIX)
+
+    def build_leaf(tree, node):
+        inputs = LeafInputs(tree, node)
+        diffuse = inputs._new("ShaderNodeBsdfDiffuse")
+        diffuse.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
+        inputs.feed(diffuse.inputs["Normal"], inputs.normal())
+        return diffuse.outputs[0]
+
+    groups = rewrite_surface(material, build_leaf, suffix=DETAIL_SUFFIX, kinds=BAKED_BSDFS)
+    material.node_tree.nodes.active = material.node_tree.nodes.new("ShaderNodeTexImage")
+    return material, groups
+
+
+def bake_irradiance_detail(scene, targets, tiles, atlas_shape, detail: int, samples: int = IRRADIANCE_DETAIL_SAMPLES,
+                           progress=lambda fraction, message: None, should_cancel=lambda: False):
+    """Irradiance E (W/m^2 per unit radiance, as the light fields' quadrature gives it) of the capture `targets`, each
+    baked into its tile (capture.ObjectTile) at `detail` pixels per texel. Returns ((H * detail, W * detail, 3) float32
+    E, row 0 = the atlas' top; (H * detail, W * detail) mask of the pixels a bake wrote; {'seconds', 'samples'})."""
+    start = time.perf_counter()
+    height, width = atlas_shape[0] * detail, atlas_shape[1] * detail
+    irradiance = np.zeros((height, width, 3), np.float32)
+    written = np.zeros((height, width), bool)
+    whites, created_groups = {}, []
+    image = bpy.data.images.new(DETAIL_IMAGE, 4, 4, alpha=True, float_buffer=True)
+
+    def white_for_slot(original):
+        if original.name not in whites:
+            whites[original.name], groups = white_diffuse_material(original)
+            created_groups.extend(groups)
+        return whites[original.name]
+
+    try:
+        with CyclesBakeSettings(scene, samples):
+            for k, (target, tile) in enumerate(zip(targets, tiles)):
+                if should_cancel():
+                    raise BakeCancelled("capture cancelled")
+                progress(k / max(len(targets), 1), f"diffuse light of '{target.name}'")
+                # a margin of one texel's pixels fills half the gutter between charts from each side
+                baked = bake_tile(scene, target, tile, image, white_for_slot, bake_type="DIFFUSE",
+                                  pass_filter={"DIRECT", "INDIRECT"}, scale=detail, margin=detail)
+                x, y, w, h = (int(v) * detail for v in tile.pixel_rect)
+                mine = baked[..., 3] > 0
+                block = irradiance[y:y + h, x:x + w]
+                block[mine] = baked[..., :3][mine] * math.pi  # the pass is E / pi: a white Lambertian's radiance
+                written[y:y + h, x:x + w] |= mine
+    finally:
+        for material in whites.values():
+            bpy.data.materials.remove(material)
+        for group in reversed(created_groups):
+            if group.users == 0:
+                bpy.data.node_groups.remove(group)
+        bpy.data.images.remove(image)
+    irradiance = np.nan_to_num(np.maximum(irradiance, 0.0), nan=0.0, posinf=0.0)
+    return irradiance, written, {"seconds": round(time.perf_counter() - start, 3), "samples": samples,
+                                 "detail": detail, "size": [width, height]}
+
+
+def filled(irradiance: np.ndarray, written: np.ndarray, rings: int) -> np.ndarray:
+    """Pixels no bake wrote, up to `rings` pixels from written ones, copied from a neighbour: a renderer's bilinear
+    (and EEVEE's mipmapped) lookup near a chart's edge then blends the chart's own light, not black."""
+    out, _ = dilate({"E": irradiance}, written, rings)
+    return out["E"]
+
+
+def texel_means(irradiance: np.ndarray, written: np.ndarray, detail: int, texels: np.ndarray) -> np.ndarray:
+    """(T, 3) mean of the written detail pixels inside each texel (T, 2) [row, col]; NaN where none was written."""
+    height, width = irradiance.shape[0] // detail, irradiance.shape[1] // detail
+    blocks = irradiance.reshape(height, detail, width, detail, 3)
+    weights = written.reshape(height, detail, width, detail).astype(np.float64)
+    rows, cols = texels[:, 0], texels[:, 1]
+    total = np.einsum("tijc,tij->tc", blocks[rows, :, cols, :].astype(np.float64), weights[rows, :, cols, :])
+    count = weights[rows, :, cols, :].sum(axis=(1, 2))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return total / count[:, None]
