@@ -110,6 +110,10 @@ STAGE_SETTINGS = {
 STAGE_SETTINGS["apply"] = STAGE_SETTINGS["evaluate"] = STAGE_SETTINGS["train"] | {"irradiance_detail"}
 
 
+# Settings added after plan.json's first version, with the value that behaves as before they existed.
+SETTINGS_ADDED_LATER = {"irradiance_detail": 1}
+
+
 class BakeInputError(ValueError):
     """The scene or the settings cannot be baked; the message says why and names the object."""
 
@@ -368,8 +372,14 @@ class BakePlan:
         return data
 
     def content_hash(self) -> str:
-        """sha256 of the whole plan (settings, objects, environment, lights): plan.json's tamper check."""
-        payload = json.dumps(asdict(self), sort_keys=True, separators=(",", ":")).encode()
+        """sha256 of the whole plan (settings, objects, environment, lights): plan.json's tamper check. A setting
+        added since plan.json's first version counts only away from the value that keeps the older behaviour, so a
+        plan.json written before it still reads as intact."""
+        data = asdict(self)
+        for key, value in SETTINGS_ADDED_LATER.items():
+            if data["settings"].get(key) == value:
+                del data["settings"][key]
+        payload = json.dumps(data, sort_keys=True, separators=(",", ":")).encode()
         return hashlib.sha256(payload).hexdigest()[:16]
 
     def stage_hash(self, stage: str) -> str:

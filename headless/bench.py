@@ -33,6 +33,8 @@ writes them to bench_out/bench.json; bench_out/results.md shows the plots first,
             without it (ray tracing, baked volume and sphere probes) against the Cycles reference, overall and per
             material; and the same scene with every texture replaced by its mean over the surface (measured by
             Cycles). Targets: EEVEE without the bake / with it >= 2; textured / mean-textured bake FLIP <= 1.2.
+            Beside them the textured bake with irradiance detail 1 (diffuse light from the light fields), on the
+            same light fields and SGs: the cost and gain of the preset's detail image.
   geometry  demo:geometry (a smooth monkey, a live Bevel + Array + Subdivision stack, extruded text, a bevelled
             curve) at Draft: per object its geometry, texels, capture seconds and the FLIP of EEVEE with and without
             the bake, per material.
@@ -233,12 +235,13 @@ def bench_train(out_root: Path, scene_name: str = "spheres", budget_s: float = 6
     n_mid = unit_midpoint(normals[a_idx], normals[b_idx])
     rows, curves = [], {}
 
-    def add(name, prediction, midpoint_prediction, seconds, bytes_per_texel):
+    def add(name, prediction, midpoint_prediction, seconds, bytes_per_texel, epochs=None):
         metrics = error_metrics(prediction, images, normals)
         mid = error_metrics(midpoint_prediction, held_out, n_mid)
         rows.append({"method": name, "seconds": round(seconds, 1), "loss": metrics["loss"], "rmse": metrics["rmse"],
                      "rmse_log": metrics["rmse_log"], "midpoint_rmse": mid["rmse"], "midpoint_loss": mid["loss"],
-                     "bytes_per_texel": bytes_per_texel})
+                     "bytes_per_texel": bytes_per_texel, "epochs": epochs,
+                     "epochs_per_s": round(epochs / seconds, 2) if epochs and seconds > 0 else None})
 
     data = LightFieldData.from_numpy(images, normals)
     neighbours = torch.from_numpy(neighbours)
@@ -255,7 +258,7 @@ def bench_train(out_root: Path, scene_name: str = "spheres", budget_s: float = 6
         state = trainer.train()
         a, s, m = trainer.parameters_numpy()
         add(name, reconstruct(a, s, m, 16), reconstruct(*midpoint_parameters(a, s, m, a_idx, b_idx), 16),
-            state.seconds[-1], 2 * sg_count * 7)
+            state.seconds[-1], 2 * sg_count * 7, state.epoch)
         curves[name] = (state.seconds, state.losses)
     start = time.perf_counter()
     axes, sharpness, amps = fit_fixed_sg(images, normals, 12)

@@ -53,6 +53,23 @@ def test_plan_json_roundtrip_and_tamper_detection():
         BakePlan.from_dict(data)
 
 
+def test_a_plan_json_written_before_a_later_setting_still_reads_as_intact():
+    """plan.json of a bake made before irradiance_detail existed (no key, its hash over the older settings) loads as
+    the older behaviour (detail 1) and passes the tamper check; a detail above 1 is part of the hash."""
+    plan = build_plan(build_demo_scene("spheres"), BakeSettings.from_preset("draft", irradiance_detail=1))
+    older = json.loads(json.dumps(plan.to_dict()))
+    del older["settings"]["irradiance_detail"]
+    loaded = BakePlan.from_dict(older)
+    assert loaded.settings.irradiance_detail == 1 and loaded.content_hash() == older["hash"]
+    before = plan.content_hash()
+    plan.settings.irradiance_detail = 4
+    assert plan.content_hash() != before
+    data = json.loads(json.dumps(plan.to_dict()))
+    data["settings"]["irradiance_detail"] = 2
+    with pytest.raises(BakeInputError, match="hash"):
+        BakePlan.from_dict(data)
+
+
 def test_stage_hashes_follow_what_outputs_depend_on_not_the_plans_wording():
     """Rewording a reason or a warning keeps finished renders; a change in what is baked does not."""
     import copy

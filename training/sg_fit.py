@@ -347,27 +347,36 @@ class Trainer:
         b = safe_normalize(self.model.raw[pairs[:, 1], :, 0:3])
         return (1 - (a * b).sum(-1)).mean()
 
-    def _step(self, index) -> float | None:
+    def _step(self, index):
+        """One Adam step; returns the loss as a 0-d tensor, or None (nothing changed) when the loss or a gradient is
+        not finite. One host synchronisation: the finiteness flag (per-step loss floats and per-parameter checks
+        each made one, which a GPU pays for in idle time)."""
         self.optimizer.zero_grad(set_to_none=True)
         loss = self._batch_loss(index)
-        if not torch.isfinite(loss):
-            return None
         loss.backward()
-        grads_ok = all(torch.isfinite(p.grad).all() for p in self.model.parameters() if p.grad is not None)
-        if not grads_ok:
+        finite = torch.isfinite(loss.detach())
+        for p in self.model.parameters():
+            if p.grad is not None:
+                finite = finite & torch.isfinite(p.grad).all()
+        if not bool(finite):
             return None
         self.optimizer.step()
-        if not all(torch.isfinite(p).all() for p in self.model.parameters()):
-            return None
-        return float(loss.detach())
+        return loss.detach()
 
-    def _recover_from_nan(self, snapshot):
-        """Skip the step: restore the last good weights and optimiser, lower the learning rate."""
-        self.model.load_state_dict(snapshot["model"])
-        self.optimizer.load_state_dict(snapshot["optimizer"])
+    def _snapshot(self) -> dict:
+        return {"model": {k: v.clone() for k, v in self.model.state_dict().items()},
+                "optimizer": _clone_state(self.optimizer.state_dict())}
+
+    def _lower_rate(self):
         for group in self.optimizer.param_groups:
             group["lr"] *= self.config.lr_drop_on_nan
         self.state.nan_recoveries += 1
+
+    def _recover_from_nan(self, snapshot):
+        """Weights that became non-finite: back to `snapshot` (the epoch's start), at a lower learning rate."""
+        self.model.load_state_dict(snapshot["model"])
+        self.optimizer.load_state_dict(snapshot["optimizer"])
+        self._lower_rate()
 
     def train(self, progress=None, should_cancel=lambda: False, epochs: int | None = None,
               save_checkpoint: bool = True) -> TrainState:
@@ -391,20 +400,23 @@ class Trainer:
                 break
             tick = time.perf_counter()
             order = torch.randperm(texels, generator=self.generator)
-            total, count = 0.0, 0
+            snapshot = self._snapshot()  # once an epoch: a finite step can still leave non-finite weights (rare)
+            total, count = torch.zeros((), device=self.device), 0
             for start in range(0, texels, batch):
                 index = order[start:start + batch]
-                snapshot = {"model": {k: v.clone() for k, v in self.model.state_dict().items()},
-                            "optimizer": _clone_state(self.optimizer.state_dict())}
                 loss = self._step(index)
-                if loss is None:
-                    self._recover_from_nan(snapshot)
+                if loss is None:  # skipped before it changed anything
+                    self._lower_rate()
                     continue
-                total += loss * len(index)
+                total = total + loss * len(index)
                 count += len(index)
+            if not all(bool(torch.isfinite(p).all()) for p in self.model.parameters()):
+                self._recover_from_nan(snapshot)
+                total, count = torch.zeros((), device=self.device), 0
             spent += time.perf_counter() - tick
             state.epoch += 1
-            state.losses.append(total / max(count, 1))
+            # an epoch without a kept step repeats the last loss (0 would read as converged)
+            state.losses.append(float(total) / count if count else (state.losses[-1] if state.losses else 0.0))
             state.seconds.append(spent)
             if progress is not None:
                 eta = None
