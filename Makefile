@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed-$(shell cat requirements.txt requirements-extension.
 DEMO_OUT ?= bake_out/spheres
 HAIR_DATA ?= hair_data
 
-.PHONY: demo test test-fast browser bench check-math farm-demo extension hair-model clean
+.PHONY: demo test test-fast browser bench check-math farm-demo gpu-check extension hair-model clean
 
 $(STAMP): requirements.txt requirements-extension.txt
 	$(PYTHON_BOOTSTRAP) -m venv $(VENV)
@@ -64,6 +64,17 @@ farm-demo: $(STAMP)
 	$(VENV)/bin/openjd run farm/openjd/sg_lightfield_bake.yaml -p BlendFile=demo:spheres -p OutputDir=$(abspath $(FARM_OUT)) \
 	  -p Preset=draft -p TileCount=3 -p Python=$(abspath $(PY)) -p Repository=$(CURDIR)
 	@echo "report: $(FARM_OUT)/report.html   baked scene: $(FARM_OUT)/baked.blend"
+
+# The GPU path's measurements (headless/gpu_check.py, docs/design-additions.md §37): room's Draft light fields
+# rendered here once and exported to numpy, then training, a Production-sized epoch and the refits on the CPU and on
+# CUDA when torch sees one. On a lent GPU machine: carry $(GPU_CHECK)/room_draft.npz and headless/, training/,
+# shaders/, bake_directory/ and sg_launch.py, then `python headless/gpu_check.py --data .../room_draft.npz` there.
+GPU_CHECK ?= bake_out/gpu_check
+gpu-check: $(STAMP)
+	test -f $(GPU_CHECK)/room_draft.npz || { \
+	  $(PY) headless/bake.py --scene demo:room --preset draft --out $(GPU_CHECK)/room --stages capture,render && \
+	  $(PY) headless/gpu_check.py --export $(GPU_CHECK)/room --out $(GPU_CHECK)/room_draft.npz; }
+	$(PY) headless/gpu_check.py --data $(GPU_CHECK)/room_draft.npz --report $(GPU_CHECK)/report.json
 
 extension: $(STAMP)
 	$(PY) -m headless.build_extension --out dist

@@ -1,0 +1,58 @@
+"""`make gpu-check` on a machine without CUDA: the export of a real rendered bake, then every measurement on the CPU,
+CUDA named as not measured with its reason (the GPU rows need a lent machine; docs/design-additions.md §37)."""
+import json
+
+import numpy as np
+import pytest
+
+from sg_lightfield.blender_addon.capture import capture
+from sg_lightfield.blender_addon.demo_scenes import build_demo_scene
+from sg_lightfield.blender_addon.render import render_stage
+from sg_lightfield.blender_addon.scene_analysis import build_plan
+from sg_lightfield.bake_directory.bake_plan import BakeSettings, write_json_atomic
+from sg_lightfield.headless import gpu_check
+
+
+@pytest.mark.slow
+def test_gpu_check_exports_a_rendered_bake_and_measures_every_row_it_can(tmp_path, capsys):
+    scene = build_demo_scene("spheres")
+    plan = build_plan(scene, BakeSettings.from_preset("draft", texel_density=1.5, lightfield_resolution=8, samples=2,
+                                                      irradiance_detail=1))
+    write_json_atomic(tmp_path / "bake" / "plan.json", plan.to_dict())  # as every front end writes it
+    capture(scene, plan, tmp_path / "bake")
+    render_stage(scene, plan, tmp_path / "bake")
+    data_file = tmp_path / "lightfields.npz"
+    assert gpu_check.main(["--export", str(tmp_path / "bake"), "--out", str(data_file)]) == 0
+    data = gpu_check.load_data(data_file)
+    assert data["images"].shape[1:] == (8, 8, 3) and len(data["images"]) == len(data["normals"]) > 0
+    assert data["lobe_counts"].max() >= 1 and np.all(np.isfinite(data["images"].astype(np.float32)))
+
+    report_file = tmp_path / "gpu_check.json"
+    assert gpu_check.main(["--data", str(data_file), "--seconds", "1", "--production-texels", "64",
+                           "--refit-texels", "16", "--refit-steps", "2",
+                           "--report", str(report_file)]) == 0
+    report = json.loads(report_file.read_text())
+    cpu = report["training"][0]
+    assert cpu["device"] == "cpu" and cpu["epochs"] >= 1 and np.isfinite(cpu["final_loss"])
+    assert report["production"][0]["texels"] == 64 and report["production"][0]["texels_per_s"] > 0
+    assert report["refits"][0]["lobe_refit_s"] >= 0 and report["refits"][0]["amplitude_refit_s"] >= 0
+    import torch
+
+    if not torch.cuda.is_available():
+        assert report["devices"]["cuda"].startswith("not measured: torch sees no CUDA device")
+        assert len(report["training"]) == 1
+    printed = capsys.readouterr().out
+    assert "training   cpu" in printed and "NaN" not in printed and "nan" not in printed
+
+
+def test_seconds_to_loss_reads_the_first_epoch_at_or_below_it():
+    curve = [[1.0, 0.5], [2.0, 0.3], [3.0, 0.2]]
+    assert gpu_check.seconds_to_loss(curve, 0.3) == 2.0
+    assert gpu_check.seconds_to_loss(curve, 0.1) is None
+
+
+def test_gpu_check_refuses_a_file_that_is_not_its_export(tmp_path):
+    other = tmp_path / "other.npz"
+    np.savez(other, images=np.zeros((1, 8, 8, 3)))
+    with pytest.raises(SystemExit, match="not a gpu-check export \\(missing normals"):
+        gpu_check.load_data(other)
