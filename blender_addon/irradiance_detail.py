@@ -14,6 +14,7 @@ white copies for its own bake and restored after; the copies are removed.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 
@@ -22,7 +23,7 @@ import numpy as np
 
 from ..bake_directory.bake_plan import IRRADIANCE_DETAIL_SAMPLES, BakeCancelled
 from ..bake_directory.texel_raster import dilate
-from .surface_probe import CyclesBakeSettings, bake_tile
+from .surface_probe import CyclesBakeSettings, bake_tile, bakes_in_place, hidden_from_rays
 from .surface_shaders import BAKED_BSDFS, LeafInputs, copy_material, rewrite_surface
 
 DETAIL_FILE = "irradiance_detail.exr"
@@ -71,9 +72,11 @@ def bake_irradiance_detail(scene, targets, tiles, atlas_shape, detail: int, samp
                 if should_cancel():
                     raise BakeCancelled("capture cancelled")
                 progress(k / max(len(targets), 1), f"diffuse light of '{target.name}'")
-                # a margin of one texel's pixels fills half the gutter between charts from each side
-                baked = bake_tile(scene, target, tile, image, white_for_slot, bake_type="DIFFUSE",
-                                  pass_filter={"DIRECT", "INDIRECT"}, scale=detail, margin=detail)
+                # a copy baked in the object's place: the original (all its instances) leaves the rays to it
+                hide = contextlib.nullcontext() if bakes_in_place(target) else hidden_from_rays(target.obj)
+                with hide:  # a margin of one texel's pixels fills half the gutter between charts from each side
+                    baked = bake_tile(scene, target, tile, image, white_for_slot, bake_type="DIFFUSE",
+                                      pass_filter={"DIRECT", "INDIRECT"}, scale=detail, margin=detail)
                 x, y, w, h = (int(v) * detail for v in tile.pixel_rect)
                 mine = baked[..., 3] > 0
                 block = irradiance[y:y + h, x:x + w]

@@ -93,6 +93,31 @@ def bake_tile(scene, target, tile, image, material_for_slot, *, bake_type="EMIT"
     return pixels.reshape(h, w, 4)[::-1]  # image rows from the bottom, atlas rows from the top
 
 
+RAY_VISIBILITY = ("visible_camera", "visible_diffuse", "visible_glossy", "visible_transmission",
+                  "visible_volume_scatter", "visible_shadow")
+
+
+def bakes_in_place(target) -> bool:
+    """Whether Cycles bakes the target's own object (a plain mesh of the scene) rather than a temporary copy."""
+    obj = target.obj
+    return obj.type == "MESH" and not obj.modifiers and target.instancer is None
+
+
+@contextlib.contextmanager
+def hidden_from_rays(obj):
+    """`obj` (and so its instances) invisible to every Cycles ray for the block: a temporary copy that bakes its
+    surface in its place must not find the original's coincident surface at distance 0 (a lighting bake of a copy
+    beside its original measured 0 everywhere). Its settings come back after."""
+    saved = {name: getattr(obj, name) for name in RAY_VISIBILITY}
+    try:
+        for name in RAY_VISIBILITY:
+            setattr(obj, name, False)
+        yield
+    finally:
+        for name, value in saved.items():
+            setattr(obj, name, value)
+
+
 @contextlib.contextmanager
 def _bake_object(scene, target):
     """What Cycles bakes for a capture target: the object itself when it renders its mesh data where it stands;
@@ -100,7 +125,7 @@ def _bake_object(scene, target):
     holding its evaluated surface at the target's matrix, which Blender's bake can take (it bakes mesh objects only
     and looks the UV layer up on the mesh data)."""
     obj = target.obj
-    if obj.type == "MESH" and not obj.modifiers and target.instancer is None:
+    if bakes_in_place(target):
         yield obj
         return
     depsgraph = bpy.context.evaluated_depsgraph_get()

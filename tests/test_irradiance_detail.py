@@ -170,3 +170,30 @@ def test_node_group_reads_the_detail_image_as_its_numpy_reference_does(tmp_path)
                           np.broadcast_to((0.8, 0.5, 0.2), (h, w, 3)), 0, 0, (), True, 0)["total"]
         worst = max(worst, float((np.abs(rendered - reference) / np.maximum(np.abs(reference), 0.1)).max()))
     assert worst < 1e-3, worst
+
+
+@pytest.mark.slow
+def test_a_surface_baked_through_a_copy_is_not_shadowed_by_its_own_original(tmp_path):
+    """A plane with a Bevel modifier is baked through a temporary copy of its evaluated surface, coincident with the
+    original: under a uniform white sky its irradiance is pi everywhere (a white Lambertian's E), not the 0 the
+    original's surface at distance 0 gave before it was hidden from the copy's rays; its ray visibility comes back."""
+    from sg_lightfield.blender_addon.surface_probe import RAY_VISIBILITY
+
+    plane = mesh_object("Bevelled Floor", lambda bm: bmesh.ops.create_grid(bm, x_segments=4, y_segments=4, size=2.0,
+                                                                           calc_uvs=True),
+                        material("Rough Bevelled", roughness=0.9), uv_map="UVMap")
+    plane.modifiers.new("Bevel", "BEVEL")
+    plane.visible_shadow = False  # a user's choice: it must come back as it was
+    scene = scene_with(plane, name="copy under the sky")
+    world = bpy.data.worlds.new("white sky")
+    world.node_tree.nodes["Background"].inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
+    scene.world = world
+    visibility = {name: getattr(plane, name) for name in RAY_VISIBILITY}
+    plan = build_plan(scene, BakeSettings.from_preset("draft", texel_density=2.0, irradiance_detail=4))
+    assert plan.objects[0].geometry == "mesh + Bevel" and plan.objects[0].bake_lightfield
+    capture(scene, plan, tmp_path)
+    irradiance, _, _ = read_exr(tmp_path / DETAIL_FILE)
+    lit = irradiance[..., 1][irradiance[..., 1] > 0]
+    assert lit.size > 0.5 * irradiance[..., 1].size
+    assert np.allclose(lit, np.pi, rtol=0.02), (lit.min(), np.median(lit))
+    assert {name: getattr(plane, name) for name in RAY_VISIBILITY} == visibility
