@@ -269,12 +269,19 @@ class BakePlan:
     def lightmap_only_texels(self) -> int:
         return sum(o.texels for o in self.lightmap_only_objects)
 
+    @property
+    def lightfield_texels(self) -> int:
+        """Texels the render stage gives light fields: with an irradiance detail image, only those of objects with
+        SGs (the image holds every surface's diffuse light)."""
+        return self.texels - self.lightmap_only_texels if self.settings.irradiance_detail > 1 else self.texels
+
     def render_estimate_s(self) -> float:
-        r, settings, lightmap = self.settings.lightfield_resolution, self.settings, self.lightmap_only_texels
-        pixel_samples = (self.texels - lightmap) * settings.samples + lightmap * settings.lightmap_pass_samples
+        r, settings = self.settings.lightfield_resolution, self.settings
+        lightmap = self.lightmap_only_texels if settings.irradiance_detail <= 1 else 0
+        pixel_samples = (self.lightfield_texels - lightmap) * settings.samples + lightmap * settings.lightmap_pass_samples
         rays = r * r * pixel_samples / 2  # upper hemisphere only
         if self.environment.iwev:
-            rays += self.texels * r * r / 2  # one primary ray per pixel for L_E * V
+            rays += self.lightfield_texels * r * r / 2  # one primary ray per pixel for L_E * V
         return rays / ATLAS_RAYS_PER_SECOND_CPU
 
     def irradiance_detail_estimate_s(self) -> float:
@@ -317,7 +324,11 @@ class BakePlan:
         left = sorted({m.name for o in self.objects for m in o.materials if m.reason.startswith("left to the renderer")})
         if left:
             lines.append("left to the renderer (reasons above): " + ", ".join(left))
-        if self.lightmap_only_texels and self.settings.lightmap_pass_samples != self.settings.samples:
+        if self.lightmap_only_texels and self.settings.irradiance_detail > 1:
+            names = ", ".join(o.name for o in self.lightmap_only_objects)
+            lines.append(f"objects with lightmaps only ({names}): no light fields (the irradiance detail image holds "
+                         "their light)")
+        elif self.lightmap_only_texels and self.settings.lightmap_pass_samples != self.settings.samples:
             names = ", ".join(o.name for o in self.lightmap_only_objects)
             lines.append(f"light fields of objects with lightmaps only ({names}): "
                          f"{self.settings.lightmap_pass_samples} samples per pixel (irradiance needs their mean), "
@@ -342,8 +353,11 @@ class BakePlan:
         """Disk for the bake directory and peak RAM (training holds every light field as float32)."""
         r2 = self.settings.lightfield_resolution ** 2
         passes = 3 if self.environment.iwev else 1  # light field, W_E, L_E*V
-        disk = self.texels * r2 * 3 * 2 * passes + self.texels * 2 * 7 * max(self.max_sg_count, 1) * passes
-        ram = self.texels * r2 * 3 * 4 + tile_megapixels * 1e6 * CYCLES_BYTES_PER_PIXEL
+        rendered, detail = self.lightfield_texels, self.settings.irradiance_detail
+        disk = rendered * r2 * 3 * 2 * passes + self.texels * 2 * 7 * max(self.max_sg_count, 1) * passes
+        if detail > 1:  # the irradiance detail image, half RGB
+            disk += self.texels * detail * detail * 3 * 2
+        ram = rendered * r2 * 3 * 4 + tile_megapixels * 1e6 * CYCLES_BYTES_PER_PIXEL
         return {"disk_mb": round(disk / 1e6, 1), "ram_mb": round(ram / 1e6, 1)}
 
     def summary(self) -> str:
@@ -395,6 +409,8 @@ class BakePlan:
                     material.pop("sg_count", None)
         if stage != "capture":
             data["light_field_bounce_rule"] = LIGHT_FIELD_BOUNCE_RULE
+            if self.settings.irradiance_detail > 1:  # lightmap-only objects get no light fields then (render.py)
+                data["lightmap_only_light_fields"] = False
         data.pop("warnings", None)  # prose: rewording it must not invalidate finished renders
         data["environment"].pop("reason", None)
         for obj in data["objects"]:

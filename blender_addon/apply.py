@@ -50,6 +50,8 @@ PACKED_FILE = "sg_packed.exr"
 
 def irradiance_from_lightfields(images: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """E(n) = sum over pixels of L max(n.d, 0) solid angle: (T, C)."""
+    if not len(images):
+        return np.zeros((0, images.shape[-1]))
     r = images.shape[1]
     d = pixel_directions(r).reshape(-1, 3)
     w = pixel_solid_angles(r).reshape(-1)
@@ -89,15 +91,17 @@ def build_packed_image(out_dir: Path, plan) -> tuple[SGTextureLayout, Path, dict
     elif encoded:
         axis, sharpness, amplitude, meta = read_sg_texture(lightfield, plan.stage_hash("train"))
         n = int(meta["sg_count"])
-    texels, images = read_images(out_dir / "lightfield", plan.stage_hash("render"))
+    if encoded or detail is None:
+        texels, images = read_images(out_dir / "lightfield", plan.stage_hash("render"))
+    else:  # irradiance lightmaps only, their light in the detail image: the render stage made no light fields
+        texels, images = np.zeros((0, 2), np.int64), np.zeros((0, 1, 1, 3), np.float32)
     shading = channels(atlas, "N.X", 3)[texels[:, 0], texels[:, 1]].astype(np.float64)
     irradiance = encoded_irradiance = irradiance_from_lightfields(images, shading)
-    if plan.environment.iwev:  # the light field leaves the sky to IWEV; diffuse still needs its light
+    if plan.environment.iwev and len(texels):  # the light field leaves the sky to IWEV; diffuse still needs its light
         sky_texels, sky = read_images(out_dir / "env_occluded", plan.stage_hash("render"))
         if not np.array_equal(sky_texels, texels):
             raise BakeInputError(f"{out_dir}: env_occluded and lightfield texels differ; render again")
         irradiance = irradiance + irradiance_from_lightfields(sky, shading)
-    lightmap = smooth_over_texels(atlas, texels, irradiance)  # for the diffuse; the check below uses the unsmoothed
     # How far the encoding's own irradiance is from that of what it encodes (with IWEV, the light field without
     # the sky), on the texels that have an encoding.
     with_sgs = texels_of_objects(atlas, texel_info, texels, plan.sg_objects)
@@ -141,11 +145,12 @@ def build_packed_image(out_dir: Path, plan) -> tuple[SGTextureLayout, Path, dict
         tiles[("amp", j)] = np.concatenate([amplitude[..., j, :], np.zeros(shape + (1,))], -1)
     measured = {}
     if detail is None:
+        lightmap = smooth_over_texels(atlas, texels, irradiance)  # for the diffuse; the check above took the unsmoothed
         tiles[("irradiance", 0)] = np.concatenate([scatter_dilated(shape, texels, lightmap), np.ones(shape + (1,))], -1)
     else:  # two independent estimates of the texels' irradiance: Cycles' bake, the light fields' quadrature
         means = texel_means(detail, np.ones(detail.shape[:2], bool), plan.settings.irradiance_detail, texels)
         total = float(irradiance.sum())
-        measured = {"irradiance_detail_over_lightfields": float(means.sum()) / total if total > 0 else 1.0}
+        measured = {"irradiance_detail_over_lightfields": float(means.sum()) / total if total > 0 else None}
     path = write_exr(out_dir / PACKED_FILE, pack_tiles(layout, tiles, shape), precision="half",
                      channels=["R", "G", "B", "A"], metadata={"plan_hash": plan.stage_hash("train"),
                                                               "layout": json.dumps(layout.to_dict())})

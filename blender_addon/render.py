@@ -475,10 +475,12 @@ def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: i
     settings = plan.settings
     resolution = settings.lightfield_resolution
     result = RenderResult()
-    texels, lightfield_plan = plan_lightfield_tiles(atlas, texel_info, valid_texels(atlas), plan, resolution,
-                                                    max_tile_megapixels)
+    texels = valid_texels(atlas)
+    if plan.settings.irradiance_detail > 1:  # the capture's detail image holds every surface's diffuse light: the
+        texels = texels[texels_of_objects(atlas, texel_info, texels, plan.sg_objects)]  # lightmap-only need none
+    texels, lightfield_plan = plan_lightfield_tiles(atlas, texel_info, texels, plan, resolution, max_tile_megapixels)
     result.texels = len(texels)
-    jobs = [("lightfield", texels, _texel_inputs(atlas, texels), 3)]
+    jobs = [("lightfield", texels, _texel_inputs(atlas, texels), 3)] if len(texels) else []
     planned = {"lightfield": lightfield_plan}  # tiles grouped by samples and bounce; the other passes split evenly
     if midpoints > 0 and plan.sg_objects:
         pairs = midpoint_pairs(atlas, midpoints, texel_info=texel_info, objects=plan.sg_objects)  # what training reads
@@ -491,7 +493,7 @@ def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: i
         planned["midpoints"] = _grouped_tiles(groups, pairs, resolution, max_tile_megapixels)[1]
         jobs.append(("midpoints", pairs, inputs, 3))
     iwev_channels = plan.environment.iwev_channels if plan.environment.iwev else 0
-    if iwev_channels:
+    if iwev_channels and len(texels):
         jobs.append(("env_visibility", texels, _texel_inputs(atlas, texels), iwev_channels))
     work = []  # (kind, kind_dir, index, tile, inputs)
     for kind, ids, inputs, channel_count in jobs:
@@ -516,7 +518,10 @@ def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: i
             offset += count
     total_work = sum(len(t.texels) * tile_samples(index, t) for _, _, index, t, _ in work) or 1  # pixel samples
     finished_work, render_seconds, rays = 0, 0.0, 0
-    if not work:
+    if not jobs:
+        yield 1.0, "no light fields to render: every baked surface is an irradiance lightmap, whose light the " \
+                   "capture's detail image holds"
+    elif not work:
         yield 1.0, "all tiles already rendered"
     else:
         yield 0.0, f"{len(work)} tile{'s' if len(work) != 1 else ''} to render"  # starts the stage's clock (ETA)

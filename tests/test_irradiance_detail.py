@@ -6,7 +6,8 @@ import bmesh
 import numpy as np
 import pytest
 
-from sg_lightfield.blender_addon.apply import DETAIL_IMAGE_NAME, apply_stage, baked_groups, remove_bake
+from sg_lightfield.blender_addon.apply import (DETAIL_IMAGE_NAME, apply_stage, baked_groups,
+                                               irradiance_from_lightfields, remove_bake)
 from sg_lightfield.blender_addon.capture import capture
 from sg_lightfield.blender_addon.irradiance_detail import DETAIL_FILE, texel_means
 from sg_lightfield.blender_addon.render import quiet_stdout, render_stage
@@ -14,6 +15,8 @@ from sg_lightfield.blender_addon.scene_analysis import active_scene, build_plan
 from sg_lightfield.bake_directory.bake_plan import BakeInputError, BakeSettings
 from sg_lightfield.bake_directory.bake_report import read_report
 from sg_lightfield.bake_directory.exr_io import read_exr
+from sg_lightfield.bake_directory.lightfield_tiles import read_images
+from sg_lightfield.bake_directory.texel_maps import channels, read_texel_maps
 from tests.scene_helpers import cube, material, mesh_fingerprint, mesh_object, scene_with
 
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
@@ -55,12 +58,26 @@ def _render(scene, path, samples):
     return read_exr(path, channels=["R", "G", "B"])[0].astype(np.float64) @ LUMINANCE
 
 
+def _images_read_by(groups) -> set:
+    """Names of the images the node groups and the groups nested in them look up."""
+    names, stack = set(), list(groups)
+    while stack:
+        tree = stack.pop()
+        for node in tree.nodes:
+            if node.bl_idname == "ShaderNodeTexImage" and node.image:
+                names.add(node.image.name)
+            elif node.bl_idname == "ShaderNodeGroup" and node.node_tree:
+                stack.append(node.node_tree)
+    return names
+
+
 @pytest.mark.slow
 def test_the_detail_image_sharpens_a_lamp_shadow_and_agrees_with_the_light_fields(tmp_path):
     """Texel density 2 (50 cm texels): the box's shadow blurs over a texel in the light fields' irradiance. Baked at 4x
     the density, the same bake's Cycles render is much closer to the path-traced reference over the floor. The detail
-    image's mean over each texel agrees with the light fields' quadrature (two independent estimates), and Remove
-    takes the image away with the bake and leaves the meshes as they were."""
+    image's mean over the texels agrees with the light fields' quadrature (two independent estimates); with it, these
+    irradiance lightmaps need no light fields at all. Remove takes the image away with the bake and leaves the meshes
+    as they were."""
     scene, floor, box = _shadow_scene()
     meshes_before = mesh_fingerprint(floor.data), mesh_fingerprint(box.data)
     reference = _render(scene, tmp_path / "reference.exr", 512)
@@ -73,19 +90,28 @@ def test_the_detail_image_sharpens_a_lamp_shadow_and_agrees_with_the_light_field
         assert [m.irradiance_only for o in plan.baked_objects for m in o.materials] == [True, True]
         capture(scene, plan, out)
         assert (out / DETAIL_FILE).is_file() == (detail > 1)
-        render_stage(scene, plan, out)
+        rendered = render_stage(scene, plan, out)
+        assert plan.lightfield_texels == (plan.texels if detail == 1 else 0)
+        assert sum(rendered.tiles_rendered.values()) == (0 if detail > 1 else len(list((out / "lightfield").glob("*.exr"))))
         info = apply_stage(scene, plan, out)
         ours = _render(scene, tmp_path / f"ours{detail}.exr", 16)
         errors[detail] = float(np.abs(ours - reference).mean() / reference.mean())
         reports[detail] = info
-        groups = baked_groups(floor.material_slots[0].material)
-        images = {n.image.name for g in groups for n in g.nodes if n.bl_idname == "ShaderNodeTexImage" and n.image}
+        images = _images_read_by(baked_groups(floor.material_slots[0].material))
         assert (DETAIL_IMAGE_NAME in images) == (detail > 1), images
         assert remove_bake(scene) == 2
         assert bpy.data.images.get(DETAIL_IMAGE_NAME) is None
     assert (mesh_fingerprint(floor.data), mesh_fingerprint(box.data)) == meshes_before
     assert errors[4] < 0.7 * errors[1], errors
-    assert 0.9 < reports[4]["irradiance_detail_over_lightfields"] < 1.1, reports[4]
+    assert reports[4]["irradiance_detail_over_lightfields"] is None  # no light fields to compare with
+    lightfield_plan = build_plan(scene, BakeSettings.from_preset("draft", texel_density=2.0, lightfield_resolution=8,
+                                                                 samples=64, irradiance_detail=1))
+    texels, images = read_images(tmp_path / "detail1" / "lightfield", lightfield_plan.stage_hash("render"))
+    atlas, _ = read_texel_maps(tmp_path / "detail1", lightfield_plan.stage_hash("capture"))
+    from_lightfields = irradiance_from_lightfields(images, channels(atlas, "N.X", 3)[texels[:, 0], texels[:, 1]])
+    detail_image, _, _ = read_exr(tmp_path / "detail4" / DETAIL_FILE)
+    from_detail = texel_means(detail_image, np.ones(detail_image.shape[:2], bool), 4, texels)
+    assert 0.9 < from_detail.sum() / from_lightfields.sum() < 1.1, from_detail.sum() / from_lightfields.sum()
     report = read_report(tmp_path / "detail4")
     assert report["irradiance_detail"]["detail"] == 4 and report["irradiance_detail"]["pixels_written"] > 0
 

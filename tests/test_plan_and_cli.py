@@ -191,19 +191,26 @@ def test_cli_plan_only_json_lines_parse(tmp_path):
 
 def test_cli_production_plan_gives_16_sgs_everywhere_and_the_floor_its_lightmap_samples(tmp_path):
     """Production: 16 SGs on every glossy sphere (--no-uniform-sg-count brings back the per-material rule: 8 at
-    roughness 0.4 and 0.5) and the lightmap-only floor's light field at 64 spp beside the spheres' 256."""
+    roughness 0.4 and 0.5); the lightmap-only floor gets no light field (its light is in the irradiance detail
+    image), or with --irradiance-detail 1 its light field at 64 spp beside the spheres' 256."""
     lines = {}
-    for extra in ([], ["--no-uniform-sg-count", "--lightmap-samples", "0"]):
+    for key, extra in (("production", []), ("rule", ["--no-uniform-sg-count", "--lightmap-samples", "0"]),
+                       ("detail 1", ["--irradiance-detail", "1"])):
         out = _bake("--scene", "demo:spheres", "--preset", "production", "--out", str(tmp_path / "bake"),
                     "--plan-only", *extra)
         assert out.returncode == 0, out.stderr
-        decisions = json.loads((tmp_path / "bake" / "plan.json").read_text())["decisions"]
-        lines[bool(extra)] = [line for line in decisions if line.startswith(("SGs per material", "light fields of"))]
-    assert lines[False] == ["SGs per material: Glossy (roughness 0.2) 16, Glossy (roughness 0.3) 16, Glossy (roughness "
-                            "0.4) 16, Glossy (roughness 0.5) 16 (every glossy material the same (uniform))",
-                            "light fields of objects with lightmaps only (Floor): 64 samples per pixel (irradiance "
-                            "needs their mean), the others 256"]
-    assert len(lines[True]) == 1 and "Glossy (roughness 0.4) 8, Glossy (roughness 0.5) 8" in lines[True][0]
+        plan = json.loads((tmp_path / "bake" / "plan.json").read_text())
+        lines[key] = [line for line in plan["decisions"] if line.startswith(("SGs per material", "light fields of",
+                                                                             "objects with lightmaps only"))]
+        lines[key + " estimate"] = plan["render_estimate_s"]
+    assert lines["production"] == [
+        "SGs per material: Glossy (roughness 0.2) 16, Glossy (roughness 0.3) 16, Glossy (roughness 0.4) 16, Glossy "
+        "(roughness 0.5) 16 (every glossy material the same (uniform))",
+        "objects with lightmaps only (Floor): no light fields (the irradiance detail image holds their light)"]
+    assert lines["detail 1"][1] == ("light fields of objects with lightmaps only (Floor): 64 samples per pixel "
+                                    "(irradiance needs their mean), the others 256")
+    assert lines["production estimate"] < lines["detail 1 estimate"]
+    assert "Glossy (roughness 0.4) 8, Glossy (roughness 0.5) 8" in lines["rule"][0]
 
 
 @pytest.mark.parametrize("args, message", [

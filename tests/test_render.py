@@ -397,8 +397,9 @@ def test_the_light_field_leaves_out_the_bounce_the_baked_surface_adds(tmp_path):
     scene = scene_with(box, panel)
     uniform_world(scene, (0, 0, 0))
     scene.cycles.diffuse_bounces = 1
+    # irradiance detail 1: the rough box, a lightmap-only object, gets light fields
     plan = build_plan(scene, BakeSettings.from_preset("draft", lightfield_resolution=resolution, samples=64,
-                                                      texel_density=1.0))
+                                                      texel_density=1.0, irradiance_detail=1))
     capture(scene, plan, tmp_path)
     render_stage(scene, plan, tmp_path)
     atlas, _ = read_texel_maps(tmp_path)
@@ -456,7 +457,7 @@ def test_objects_with_lightmaps_only_render_with_the_lightmap_samples_in_tiles_o
     floors = {}
     for lightmap_samples in (2, 0):
         settings = BakeSettings.from_preset("draft", lightfield_resolution=8, samples=8, texel_density=6.0,
-                                            lightmap_samples=lightmap_samples)
+                                            lightmap_samples=lightmap_samples, irradiance_detail=1)
         plan = build_plan(scene, settings)
         out = tmp_path / f"lightmap_{lightmap_samples}"
         capture(scene, plan, out)
