@@ -346,6 +346,9 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
     scene[BAKE_RECORD_KEY] = json.dumps(record)
     remove_unused_group_copies()  # of an earlier apply's copies
     _remove_unused_groups()  # of an earlier bake with other SG counts
+    stale = bpy.data.images.get(DETAIL_IMAGE_NAME) if detail_image is None else None
+    if stale is not None and stale.users == 0:  # an earlier apply's, now that the irradiance is a tile again
+        bpy.data.images.remove(stale)
     uniform_bytes = {name: eevee_uniform_bytes(bpy.data.materials[name])["bytes"] for name in sorted(baked_materials)}
     warnings = [f"'{name}' needs {size} bytes of EEVEE uniforms, more than the {UNIFORM_BLOCK_LIMIT} EEVEE allows: "
                 f"EEVEE will draw it magenta (Cycles is unaffected); bake with fewer SGs"
