@@ -44,7 +44,8 @@ LIGHTMAP_SAMPLES_PRODUCTION = 64
 # Diffuse light from a Cycles diffuse bake at this many times the texel density (capture stage, irradiance_detail.py)
 # instead of the light fields' cosine-weighted mean at the texels: lamp shadows and contact shading at 4x finer
 # pixels for a bake of a few seconds. The samples per pixel of that bake, and its cost in paths per pixel sample.
-IRRADIANCE_DETAIL_SAMPLES = 128
+IRRADIANCE_DETAIL_SAMPLES = 128  # the direct light's, per detail pixel
+IRRADIANCE_INDIRECT_SAMPLES = 1024  # the indirect light's, per texel (baked at the texel density, then upsampled)
 IRRADIANCE_DETAIL_MAX = 8
 IRRADIANCE_DETAIL_PATHS_PER_SAMPLE = 1.1  # demo:materials at Draft: 2.3 M pixel samples in 10 s
 PRESETS = {

@@ -8,8 +8,10 @@ its colour) of a white Lambertian copy of each surface, with the material's own 
 pixel for a fraction of the light fields' cost: no directions are stored, one value per pixel. It is baked into the
 same atlas layout, `detail` pixels per texel, so the baked material reads it with the atlas UV it already computes.
 
-Same scene, same bounce budget as the light fields (the scene's: Cycles counts the baked surface's own diffuse
-scattering as the first bounce), the user's lamps and world as they are. Each object's slots are swapped for the
+Same scene and the scene's own bounce budget (a bake point is a camera ray's hit: its paths count bounces as a
+render's do, while the light fields leave one out because their camera sits on the surface), the user's lamps and
+world as they are. The white copy shows only to the bake's own camera ray: a path that comes back to the object sees
+its real material, or the demo room's light would bounce off a white floor (measured: walls 8 % too bright). Each object's slots are swapped for the
 white copies for its own bake and restored after; the copies are removed.
 """
 from __future__ import annotations
@@ -21,7 +23,7 @@ import time
 import bpy
 import numpy as np
 
-from ..bake_directory.bake_plan import IRRADIANCE_DETAIL_SAMPLES, BakeCancelled
+from ..bake_directory.bake_plan import IRRADIANCE_DETAIL_SAMPLES, IRRADIANCE_INDIRECT_SAMPLES, BakeCancelled
 from ..bake_directory.texel_raster import dilate
 from .surface_probe import CyclesBakeSettings, bake_tile, bakes_in_place, hidden_from_rays
 from .surface_shaders import BAKED_BSDFS, LeafInputs, copy_material, rewrite_surface
@@ -32,8 +34,10 @@ DETAIL_IMAGE = "SGLF irradiance bake"
 
 
 def white_diffuse_material(original):
-    """A copy of `original` whose baked BSDFs are each a white Diffuse BSDF with that BSDF's own normal (normal or bump
-    map), with an active Image Texture node for the bake. Returns (material, node-group copies made for it)."""
+    """A copy of `original` whose baked BSDFs are each, where the bake measures (a camera ray for Cycles' bake), a white
+    Diffuse BSDF with that BSDF's own normal (normal or bump map), and the BSDF itself for every other ray: light that
+    bounces off another part of the same object keeps its colour (a room modelled as one object with red, green and
+    white walls). With an active Image Texture node for the bake. Returns (material, node-group copies made for it)."""
     material = copy_material(original, DETAIL_SUFFIX)
 
     def build_leaf(tree, node):
@@ -41,7 +45,11 @@ def white_diffuse_material(original):
         diffuse = inputs._new("ShaderNodeBsdfDiffuse")
         diffuse.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
         inputs.feed(diffuse.inputs["Normal"], inputs.normal())
-        return diffuse.outputs[0]
+        where = inputs._new("ShaderNodeMixShader")
+        tree.links.new(inputs._new("ShaderNodeLightPath").outputs["Is Camera Ray"], where.inputs[0])
+        tree.links.new(node.outputs[0], where.inputs[1])
+        tree.links.new(diffuse.outputs[0], where.inputs[2])
+        return where.outputs[0]
 
     groups = rewrite_surface(material, build_leaf, suffix=DETAIL_SUFFIX, kinds=BAKED_BSDFS)
     material.node_tree.nodes.active = material.node_tree.nodes.new("ShaderNodeTexImage")
@@ -49,10 +57,14 @@ def white_diffuse_material(original):
 
 
 def bake_irradiance_detail(scene, targets, tiles, atlas_shape, detail: int, samples: int = IRRADIANCE_DETAIL_SAMPLES,
+                           indirect_samples: int = IRRADIANCE_INDIRECT_SAMPLES,
                            progress=lambda fraction, message: None, should_cancel=lambda: False):
     """Irradiance E (W/m^2 per unit radiance, as the light fields' quadrature gives it) of the capture `targets`, each
-    baked into its tile (capture.ObjectTile) at `detail` pixels per texel. Returns ((H * detail, W * detail, 3) float32
-    E, row 0 = the atlas' top; (H * detail, W * detail) mask of the pixels a bake wrote; {'seconds', 'samples'})."""
+    baked into its tile (capture.ObjectTile): the direct light at `detail` pixels per texel with `samples`, the
+    indirect light at one pixel per texel with `indirect_samples`, upsampled bilinearly and added (indirect light
+    varies slowly over a surface, and at the detail's samples it was the noise: the demo room's walls). Returns
+    ((H * detail, W * detail, 3) float32 E, row 0 = the atlas' top; (H * detail, W * detail) mask of the pixels a
+    bake wrote; {'seconds', 'samples', ...})."""
     start = time.perf_counter()
     height, width = atlas_shape[0] * detail, atlas_shape[1] * detail
     irradiance = np.zeros((height, width, 3), np.float32)
@@ -67,21 +79,25 @@ def bake_irradiance_detail(scene, targets, tiles, atlas_shape, detail: int, samp
         return whites[original.name]
 
     try:
-        with CyclesBakeSettings(scene, samples):
-            for k, (target, tile) in enumerate(zip(targets, tiles)):
-                if should_cancel():
-                    raise BakeCancelled("capture cancelled")
-                progress(k / max(len(targets), 1), f"diffuse light of '{target.name}'")
-                # a copy baked in the object's place: the original (all its instances) leaves the rays to it
-                hide = contextlib.nullcontext() if bakes_in_place(target) else hidden_from_rays(target.obj)
-                with hide:  # a margin of one texel's pixels fills half the gutter between charts from each side
-                    baked = bake_tile(scene, target, tile, image, white_for_slot, bake_type="DIFFUSE",
-                                      pass_filter={"DIRECT", "INDIRECT"}, scale=detail, margin=detail)
-                x, y, w, h = (int(v) * detail for v in tile.pixel_rect)
-                mine = baked[..., 3] > 0
-                block = irradiance[y:y + h, x:x + w]
-                block[mine] = baked[..., :3][mine] * math.pi  # the pass is E / pi: a white Lambertian's radiance
-                written[y:y + h, x:x + w] |= mine
+        for k, (target, tile) in enumerate(zip(targets, tiles)):
+            if should_cancel():
+                raise BakeCancelled("capture cancelled")
+            progress(k / max(len(targets), 1), f"diffuse light of '{target.name}'")
+            # a copy baked in the object's place: the original (all its instances) leaves the rays to it
+            with contextlib.nullcontext() if bakes_in_place(target) else hidden_from_rays(target.obj):
+                with CyclesBakeSettings(scene, samples):  # a margin of one texel's pixels: half the gutter each side
+                    direct = bake_tile(scene, target, tile, image, white_for_slot, bake_type="DIFFUSE",
+                                       pass_filter={"DIRECT"}, scale=detail, margin=detail)
+                with CyclesBakeSettings(scene, indirect_samples):
+                    indirect = bake_tile(scene, target, tile, image, white_for_slot, bake_type="DIFFUSE",
+                                         pass_filter={"INDIRECT"}, scale=1, margin=2)
+            filled_indirect = filled(indirect[..., :3], indirect[..., 3] > 0, 2)
+            x, y, w, h = (int(v) * detail for v in tile.pixel_rect)
+            mine = direct[..., 3] > 0
+            block = irradiance[y:y + h, x:x + w]
+            light = direct[..., :3] + upsample_bilinear(filled_indirect, detail)
+            block[mine] = light[mine] * math.pi  # the passes are E / pi: a white Lambertian's radiance
+            written[y:y + h, x:x + w] |= mine
     finally:
         for material in whites.values():
             bpy.data.materials.remove(material)
@@ -91,7 +107,7 @@ def bake_irradiance_detail(scene, targets, tiles, atlas_shape, detail: int, samp
         bpy.data.images.remove(image)
     irradiance = np.nan_to_num(np.maximum(irradiance, 0.0), nan=0.0, posinf=0.0)
     return irradiance, written, {"seconds": round(time.perf_counter() - start, 3), "samples": samples,
-                                 "detail": detail, "size": [width, height]}
+                                 "indirect_samples": indirect_samples, "detail": detail, "size": [width, height]}
 
 
 def filled(irradiance: np.ndarray, written: np.ndarray, rings: int) -> np.ndarray:
@@ -99,6 +115,23 @@ def filled(irradiance: np.ndarray, written: np.ndarray, rings: int) -> np.ndarra
     (and EEVEE's mipmapped) lookup near a chart's edge then blends the chart's own light, not black."""
     out, _ = dilate({"E": irradiance}, written, rings)
     return out["E"]
+
+
+def upsample_bilinear(block: np.ndarray, factor: int) -> np.ndarray:
+    """(h, w, C) texel values -> (h * factor, w * factor, C): each pixel the bilinear blend of the four texel centres
+    around its own centre, edges clamped (the texels' gutters are filled before)."""
+    h, w = block.shape[:2]
+
+    def axis(n):
+        centre = np.clip((np.arange(n * factor) + 0.5) / factor - 0.5, 0.0, n - 1.0)  # in texel units
+        low = np.floor(centre).astype(np.int64)
+        return low, np.minimum(low + 1, n - 1), centre - low
+
+    r0, r1, fr = axis(h)
+    c0, c1, fc = axis(w)
+    top = block[r0][:, c0] * (1 - fc)[None, :, None] + block[r0][:, c1] * fc[None, :, None]
+    bottom = block[r1][:, c0] * (1 - fc)[None, :, None] + block[r1][:, c1] * fc[None, :, None]
+    return (top * (1 - fr)[:, None, None] + bottom * fr[:, None, None]).astype(block.dtype)
 
 
 def texel_means(irradiance: np.ndarray, written: np.ndarray, detail: int, texels: np.ndarray) -> np.ndarray:
