@@ -25,7 +25,7 @@ import numpy as np
 
 from ..bake_directory.bake_plan import IRRADIANCE_DETAIL_SAMPLES, IRRADIANCE_INDIRECT_SAMPLES, BakeCancelled
 from ..bake_directory.texel_raster import dilate
-from .surface_probe import CyclesBakeSettings, bake_tile, bakes_in_place, hidden_from_rays
+from .surface_probe import CyclesBakeSettings, bake_tile, bakes_in_place, hidden_from_rays, remove_probes
 from .surface_shaders import BAKED_BSDFS, LeafInputs, copy_material, rewrite_surface
 
 DETAIL_FILE = "irradiance_detail.exr"
@@ -99,12 +99,7 @@ def bake_irradiance_detail(scene, targets, tiles, atlas_shape, detail: int, samp
             block[mine] = light[mine] * math.pi  # the passes are E / pi: a white Lambertian's radiance
             written[y:y + h, x:x + w] |= mine
     finally:
-        for material in whites.values():
-            bpy.data.materials.remove(material)
-        for group in reversed(created_groups):
-            if group.users == 0:
-                bpy.data.node_groups.remove(group)
-        bpy.data.images.remove(image)
+        remove_probes(whites.values(), created_groups, image)
     irradiance = np.nan_to_num(np.maximum(irradiance, 0.0), nan=0.0, posinf=0.0)
     return irradiance, written, {"seconds": round(time.perf_counter() - start, 3), "samples": samples,
                                  "indirect_samples": indirect_samples, "detail": detail, "size": [width, height]}

@@ -161,6 +161,16 @@ class CyclesBakeSettings:
         render.engine, cycles.samples, cycles.use_denoising = self.saved
 
 
+def remove_probes(materials, groups, image):
+    """Remove a bake's probe materials, the node-group copies made for them (once unused) and its image."""
+    for material in materials:
+        bpy.data.materials.remove(material)
+    for group in reversed(list(groups)):
+        if group.users == 0:
+            bpy.data.node_groups.remove(group)
+    bpy.data.images.remove(image)
+
+
 def measure_surfaces(scene, targets, tiles, atlas_shape, object_ids, should_measure) -> tuple[np.ndarray, np.ndarray,
                                                                                                dict]:
     """Bake the surface quantities of the capture `targets` (scene_analysis.BakeTarget, each with its tile) whose
@@ -200,12 +210,7 @@ def measure_surfaces(scene, targets, tiles, atlas_shape, object_ids, should_meas
                         block[mine, 3 * k - 1:3 * k + 2] = baked[mine]
                 measured[y:y + h, x:x + w] |= mine
     finally:
-        for material in probes.values():
-            bpy.data.materials.remove(material)
-        for group in reversed(created_groups):
-            if group.users == 0:
-                bpy.data.node_groups.remove(group)
-        bpy.data.images.remove(image)
+        remove_probes(probes.values(), created_groups, image)
     np.clip(values, 0.0, 1.0, out=values)
     return values, measured, {"seconds": round(time.perf_counter() - start, 3), "objects": [t.name for t, _ in chosen]}
 
