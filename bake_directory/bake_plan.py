@@ -167,7 +167,8 @@ class BakeSettings:
             (0 <= self.lobe_refit_steps <= 100_000, f"lobe refit steps {self.lobe_refit_steps} is outside 0..100000"),
             (self.device in ("cpu", "cuda"), f"device {self.device!r} is not 'cpu' or 'cuda'"),
             (1 <= self.irradiance_detail <= IRRADIANCE_DETAIL_MAX,
-             f"irradiance detail {self.irradiance_detail} is outside 1 (from the light fields)..{IRRADIANCE_DETAIL_MAX}"),
+             f"irradiance detail {self.irradiance_detail} is outside 1 (from the light fields).."
+             f"{IRRADIANCE_DETAIL_MAX}"),
             (self.rough_materials in ROUGH_MATERIALS,
              f"rough materials {self.rough_materials!r} is not one of {', '.join(ROUGH_MATERIALS)}"),
         ]
@@ -279,7 +280,8 @@ class BakePlan:
     def render_estimate_s(self) -> float:
         r, settings = self.settings.lightfield_resolution, self.settings
         lightmap = self.lightmap_only_texels if settings.irradiance_detail <= 1 else 0
-        pixel_samples = (self.lightfield_texels - lightmap) * settings.samples + lightmap * settings.lightmap_pass_samples
+        pixel_samples = ((self.lightfield_texels - lightmap) * settings.samples
+                         + lightmap * settings.lightmap_pass_samples)
         rays = r * r * pixel_samples / 2  # upper hemisphere only
         if self.environment.iwev:
             rays += self.lightfield_texels * r * r / 2  # one primary ray per pixel for L_E * V

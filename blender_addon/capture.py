@@ -701,8 +701,8 @@ def _irradiance_detail(scene, plan, out_dir, targets, tiles, atlas_shape, progre
         except ExrError:  # unreadable: baked again
             found = {}
         if all(found.get(k) == v for k, v in wanted.items()):
-            return {"detail": detail, "samples": IRRADIANCE_DETAIL_SAMPLES, "indirect_samples": IRRADIANCE_INDIRECT_SAMPLES,
-                    "file": DETAIL_FILE, "kept": True}
+            return {"detail": detail, "samples": IRRADIANCE_DETAIL_SAMPLES,
+                    "indirect_samples": IRRADIANCE_INDIRECT_SAMPLES, "file": DETAIL_FILE, "kept": True}
     irradiance, written, info = bake_irradiance_detail(
         scene, targets, tiles, atlas_shape, detail,
         progress=lambda fraction, message: progress(0.45 + 0.05 * fraction, message), should_cancel=should_cancel)

@@ -8,11 +8,13 @@ its colour) of a white Lambertian copy of each surface, with the material's own 
 pixel for a fraction of the light fields' cost: no directions are stored, one value per pixel. It is baked into the
 same atlas layout, `detail` pixels per texel, so the baked material reads it with the atlas UV it already computes.
 
-Same scene and the scene's own bounce budget (a bake point is a camera ray's hit: its paths count bounces as a
-render's do, while the light fields leave one out because their camera sits on the surface), the user's lamps and
-world as they are. The white copy shows only to the bake's own camera ray: a path that comes back to the object sees
-its real material, or the demo room's light would bounce off a white floor (measured: walls 8 % too bright). Each object's slots are swapped for the
-white copies for its own bake and restored after; the copies are removed.
+The direct light is baked at the detail's resolution, the indirect light (slowly varying, and the noise at the
+detail's samples) at the texels' with more samples, upsampled. Same scene and the scene's own bounce budget (a bake
+point is a camera ray's hit: its paths count bounces as a render's do, while the light fields leave one out because
+their camera sits on the surface), the user's lamps and world as they are. The white copy shows only to the bake's
+own camera ray: a path that comes back to the object sees its real material, or the demo room's light would bounce
+off a white floor (measured: walls 8 % too bright). Each object's slots are swapped for the white copies for its own
+bake and restored after; the copies are removed.
 """
 from __future__ import annotations
 

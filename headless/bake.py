@@ -36,7 +36,8 @@ def script_args(argv: list[str]) -> list[str]:
 
 SETTINGS_FILE_OPTIONS = ("preset", "texel-density", "lightfield-resolution", "samples", "lightmap-samples", "sg-count",
                          "uniform-sg-count", "training-budget", "lobe-refit-steps", "irradiance-detail",
-                         "rough-materials", "device", "midpoints", "reference-samples", "tile-megapixels", "external-images", "lightmap-uv")
+                         "rough-materials", "device", "midpoints", "reference-samples", "tile-megapixels",
+                         "external-images", "lightmap-uv")
 
 
 def _settings_arguments(parser: argparse.ArgumentParser, path: str) -> list[str]:

@@ -532,7 +532,8 @@ def bench_materials(out_root: Path, presets=("draft", "preview")) -> list[dict]:
 
             rows.append({"scene": "materials", "preset": preset, "variant": variant, "inputs_replaced": replaced,
                          "irradiance_detail": job.settings.irradiance_detail,
-                         "capture_s": round(job.timings.get("capture", 0.0), 1), "bake_s": round(bake_s, 1), "total_s": round(total, 1), "flip": round(errors["flip"], 4),
+                         "capture_s": round(job.timings.get("capture", 0.0), 1), "bake_s": round(bake_s, 1),
+                         "total_s": round(total, 1), "flip": round(errors["flip"], 4),
                          "eevee_flip": _rounded(eevee.get("flip")), "eevee_without_bake_flip": _rounded(alone.get("flip")),
                          "without_over_with": _rounded(alone["flip"] / eevee["flip"], 2)
                          if alone.get("flip") and eevee.get("flip") else None,
