@@ -133,14 +133,9 @@ def refit_timings(data: dict, device: str, texels: int, steps: int) -> dict:
     row = {"device": device, "texels": len(pick), "lobe_refit_steps": steps}
     _sync(device)
     start = time.perf_counter()
-    refit = lobe_refit_steps(images, normals, data["texels"][pick], axis, sharpness, amplitude, roughness, count,
-                             steps, device=device)
-    if not isinstance(refit, tuple):  # a generator: run it to its end
-        while True:
-            try:
-                next(refit)
-            except StopIteration:
-                break
+    for _ in lobe_refit_steps(images, normals, data["texels"][pick], axis, sharpness, amplitude, roughness, count,
+                              steps, device=device):  # a generator of the fraction done
+        pass
     _sync(device)
     row["lobe_refit_s"] = round(time.perf_counter() - start, 2)
     if device == "cpu":

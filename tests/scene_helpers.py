@@ -54,6 +54,30 @@ def uniform_world(scene, color, name="test world"):
     return world
 
 
+def lit_ortho_scene(*objects, name, lamp_energy, lamp_size, lamp_location, world_color, ortho_scale, camera_height,
+                    resolution):
+    """`objects` under one square area lamp and a one-colour world, seen from above by an orthographic camera at
+    (0, 0, camera_height) rendering resolution x resolution 32-bit EXRs with Cycles, no denoising."""
+    scene = scene_with(*objects, name=name)
+    lamp = bpy.data.objects.new("Lamp", bpy.data.lights.new("Lamp", "AREA"))
+    lamp.data.energy, lamp.data.size = lamp_energy, lamp_size
+    lamp.location = lamp_location
+    scene.collection.objects.link(lamp)
+    world = bpy.data.worlds.new(f"{name} world")
+    world.node_tree.nodes["Background"].inputs["Color"].default_value = (*world_color, 1.0)
+    scene.world = world
+    camera = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+    camera.data.type, camera.data.ortho_scale = "ORTHO", ortho_scale
+    camera.location = (0, 0, camera_height)
+    scene.collection.objects.link(camera)
+    scene.camera = camera
+    scene.render.engine = "CYCLES"
+    scene.render.resolution_x = scene.render.resolution_y = resolution
+    scene.render.image_settings.file_format, scene.render.image_settings.color_depth = "OPEN_EXR", "32"
+    scene.cycles.use_denoising = False
+    return scene
+
+
 def cube(size=1.0):
     return lambda bm: bmesh.ops.create_cube(bm, size=size, calc_uvs=True)
 

@@ -17,7 +17,7 @@ from sg_lightfield.bake_directory.bake_report import read_report
 from sg_lightfield.bake_directory.exr_io import read_exr
 from sg_lightfield.bake_directory.lightfield_tiles import read_images
 from sg_lightfield.bake_directory.texel_maps import channels, read_texel_maps
-from tests.scene_helpers import cube, material, mesh_fingerprint, mesh_object, scene_with
+from tests.scene_helpers import cube, lit_ortho_scene, material, mesh_fingerprint, mesh_object, scene_with
 
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
@@ -30,23 +30,9 @@ def _shadow_scene():
                                                                          calc_uvs=True), rough, uv_map="UVMap")
     box = mesh_object("Shadow Box", cube(0.8), rough)
     box.location = (0.0, 0.0, 0.4)
-    scene = scene_with(floor, box, name="irradiance detail test")
-    lamp = bpy.data.objects.new("Small Lamp", bpy.data.lights.new("Small Lamp", "AREA"))
-    lamp.data.energy, lamp.data.size = 400.0, 0.1
-    lamp.location = (1.2, 0.6, 2.0)
-    scene.collection.objects.link(lamp)
-    world = bpy.data.worlds.new("dim grey")
-    world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.05, 0.05, 0.05, 1.0)
-    scene.world = world
-    camera = bpy.data.objects.new("Top Camera", bpy.data.cameras.new("Top Camera"))
-    camera.data.type, camera.data.ortho_scale = "ORTHO", 3.6
-    camera.location = (0, 0, 5)
-    scene.collection.objects.link(camera)
-    scene.camera = camera
-    scene.render.engine = "CYCLES"
-    scene.render.resolution_x = scene.render.resolution_y = 72
-    scene.render.image_settings.file_format, scene.render.image_settings.color_depth = "OPEN_EXR", "32"
-    scene.cycles.use_denoising = False
+    scene = lit_ortho_scene(floor, box, name="irradiance detail test", lamp_energy=400.0, lamp_size=0.1,
+                            lamp_location=(1.2, 0.6, 2.0), world_color=(0.05, 0.05, 0.05), ortho_scale=3.6,
+                            camera_height=5, resolution=72)
     return scene, floor, box
 
 

@@ -15,7 +15,7 @@ from sg_lightfield.blender_addon.scene_analysis import active_scene, analyse_mat
 from sg_lightfield.bake_directory.bake_plan import BakeSettings
 from sg_lightfield.bake_directory.exr_io import read_exr
 from sg_lightfield.bake_directory.texel_maps import channels, read_texel_maps
-from tests.scene_helpers import base_name, mesh_fingerprint, mesh_object, scene_with
+from tests.scene_helpers import base_name, lit_ortho_scene, mesh_fingerprint, mesh_object
 
 DRAFT = BakeSettings.from_preset("draft")
 
@@ -150,24 +150,8 @@ def test_every_common_surface_is_baked_or_left_to_the_renderer_with_its_reason()
 
 
 def _lit_scene(*objects, name="materials test"):
-    scene = scene_with(*objects, name=name)
-    lamp = bpy.data.objects.new("Lamp", bpy.data.lights.new("Lamp", "AREA"))
-    lamp.data.energy, lamp.data.size = 300.0, 2.0
-    lamp.location = (0.5, -1.0, 3.0)
-    scene.collection.objects.link(lamp)
-    world = bpy.data.worlds.new("grey")
-    world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.3, 0.3, 0.35, 1.0)
-    scene.world = world
-    camera = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
-    camera.data.type, camera.data.ortho_scale = "ORTHO", 2.0
-    camera.location = (0, 0, 4)
-    scene.collection.objects.link(camera)
-    scene.camera = camera
-    scene.render.engine = "CYCLES"
-    scene.render.resolution_x = scene.render.resolution_y = 64
-    scene.render.image_settings.file_format, scene.render.image_settings.color_depth = "OPEN_EXR", "32"
-    scene.cycles.use_denoising = False
-    return scene
+    return lit_ortho_scene(*objects, name=name, lamp_energy=300.0, lamp_size=2.0, lamp_location=(0.5, -1.0, 3.0),
+                           world_color=(0.3, 0.3, 0.35), ortho_scale=2.0, camera_height=4, resolution=64)
 
 
 def _plane(name, mat, size=1.0):
