@@ -146,6 +146,23 @@ def test_two_cpu_runs_with_one_seed_are_identical_and_resume_continues_the_curve
         assert torch.equal(p, q)
 
 
+@pytest.mark.parametrize("budget, gain_per_second, expected", [
+    (30.0, 1e-3, ""),  # the 25 s left would gain 2.5 % of the loss
+    (6.0, 1e-3, "little left to gain in the budget"),  # the 1 s left would gain 0.1 %
+    (1e9, 1e-3, ""),  # no budget in sight
+    (30.0, 0.0, "plateau"),  # flat
+])
+def test_the_stop_rule_weighs_the_last_windows_gain_against_the_budget_left(budget, gain_per_second, expected):
+    data, _ = synthetic(32)
+    trainer = Trainer(data, _config(time_budget_s=budget, plateau_epochs=50, batch_texels=32))
+    seconds = np.arange(1, 101) * 0.05  # 100 epochs in 5 s: two windows of 50
+    trainer.state.seconds = list(seconds)
+    trainer.state.losses = list(1.0 - gain_per_second * seconds)
+    assert trainer._plateaued() == expected
+    trainer.state.losses.pop(), trainer.state.seconds.pop()  # one epoch short of two windows: no verdict yet
+    assert trainer._plateaued() == ""
+
+
 def test_nan_guard_skips_the_step_lowers_the_rate_and_never_writes_nan(tmp_path):
     data, _ = synthetic(32)
     trainer = Trainer(data, _config(), checkpoint=tmp_path / "ckpt.pt")

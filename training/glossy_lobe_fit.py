@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from ..shaders.sg_math import SHARPNESS_MAX, SHARPNESS_MIN
-from . import sg_torch
+from . import glossy_refit_torch, sg_torch
 from .glossy_refit import (REFIT_BATCH, REFIT_LOBE_PIXELS, atlas_neighbour_pairs, hemisphere_views,
                                    reflected_radiance, refit_min_roughness)
 
@@ -65,15 +65,18 @@ def lobe_refit_steps(images: np.ndarray, normals: np.ndarray, texels: np.ndarray
     if t == 0 or k == 0 or steps <= 0:
         return tuple(result)
     views = hemisphere_views(normals)
-    target = np.concatenate([reflected_radiance(images[s:s + REFIT_BATCH], normals[s:s + REFIT_BATCH],
-                                                views[s:s + REFIT_BATCH], roughness[s:s + REFIT_BATCH])
-                             for s in range(0, t, REFIT_BATCH)])
+    if torch.device(device).type == "cpu":  # numpy: 2.5x faster than the torch twin on the CPU
+        target = torch.from_numpy(np.concatenate([
+            reflected_radiance(images[s:s + REFIT_BATCH], normals[s:s + REFIT_BATCH], views[s:s + REFIT_BATCH],
+                               roughness[s:s + REFIT_BATCH]) for s in range(0, t, REFIT_BATCH)]).astype(np.float32))
+    else:
+        target = glossy_refit_torch.reflected_radiance_batched(images, normals, views, roughness, device)
 
     def tensor(x):
         return torch.as_tensor(np.asarray(x), dtype=dtype, device=device)
 
     groups = [slice(g, None, LOBE_REFIT_VIEW_GROUPS) for g in range(LOBE_REFIT_VIEW_GROUPS)]
-    group_targets = [tensor(target[:, group]) for group in groups]
+    group_targets = [target[:, group].to(device=device, dtype=dtype).contiguous() for group in groups]
     group_target_norms = [(part ** 2).sum(dim=(1, 2)).clamp_min(1e-12) for part in group_targets]
     group_views = [tensor(views[:, group])[:, :, None] for group in groups]
     normal = tensor(normals)[:, None, None]

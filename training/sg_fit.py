@@ -30,7 +30,7 @@ from ..bake_directory.atomic import atomic_output
 from ..shaders.octahedral import pixel_directions
 from ..shaders.octahedral import pixel_solid_angles as exact_solid_angles
 from ..shaders.sg_math import SHARPNESS_MAX, SHARPNESS_MIN, midpoint_parameters, unit_midpoint  # noqa: F401
-from .sg_torch import oct_decode, pixel_solid_angles, safe_normalize, sg_sum_eval
+from .sg_torch import oct_decode, pixel_solid_angles, safe_normalize
 
 LOG_SHARPNESS_MIN, LOG_SHARPNESS_MAX = math.log(SHARPNESS_MIN), math.log(SHARPNESS_MAX)
 
@@ -45,6 +45,11 @@ class TrainConfig:
     time_budget_s: float = 60.0
     max_epochs: int = 100_000
     batch_texels: int = 256
+    # On CUDA a step takes up to this many texels x light-field pixels (the whole atlas where it fits: room at Draft,
+    # 4096 texels at R = 32): a GPU's step costs about the same for 256 texels as for thousands.
+    cuda_batch_pixels: int = 1 << 22
+    cuda_batch_learning_rate: float = 1e-3  # the rate for those larger steps
+    cuda_graphs: bool = True  # the CNN's whole step as one CUDA graph (not with the interpolation term)
     learning_rate: float = 1e-3
     seed: int = 0
     device: str = "cpu"
@@ -53,6 +58,9 @@ class TrainConfig:
     plateau_epochs: int = 40
     plateau_steps: int = 2000
     plateau_rel: float = 1e-3
+    # ... or when the rest of the budget would gain less than this share of the loss, the last window's gain per
+    # second extrapolated linearly (more than a slowing curve gives): a fast device stops before its budget ends.
+    plateau_budget_rel: float = 0.01
     below_horizon_weight: float = 0.0  # 0 = the paper's loss
     interpolation_weight: float = 0.0  # 0 = the paper's loss; > 0 adds the interpolation term (needs neighbours)
     checkpoint_every_s: float = 30.0
@@ -139,8 +147,9 @@ def initial_raw(sg_count: int, channels: int = 3, amplitude_fraction: float = IN
     return raw
 
 
-def jittered_directions(batch: int, resolution: int, generator: torch.Generator, device="cpu"):
-    """(B, R, R, 3) directions uniform inside each octahedral pixel (fresh for every step)."""
+def jittered_directions(batch: int, resolution: int, generator: torch.Generator | None, device="cpu"):
+    """(B, R, R, 3) directions uniform inside each octahedral pixel (fresh for every step), drawn on `device`
+    (`generator` None: that device's default generator, which a CUDA graph can capture)."""
     centres = (torch.arange(resolution, dtype=torch.float32, device=device) + 0.5) / resolution * 2 - 1
     v, u = torch.meshgrid(centres, centres, indexing="ij")
     jitter = (torch.rand((batch, resolution, resolution, 2), generator=generator, device=device) - 0.5) * (
@@ -159,9 +168,15 @@ def blend_parameters(params_a, params_b):
 
 
 def predict(params, directions):
-    """Sum of SGs at directions (B, R, R, 3) for params ((B,N,3), (B,N), (B,N,C)) -> (B, R, R, C)."""
+    """Sum of SGs at directions (B, R, R, 3) for params ((B,N,3), (B,N), (B,N,C)) -> (B, R, R, C).
+
+    `sg_sum_eval` as two batched matrix products: the cosines (B, P, 3) x (B, 3, N) and the lobes' values
+    (B, P, N) x amplitudes (B, N, C); broadcasting to (B, P, N, C) and summing over N cost 2.5x the time."""
     axis, sharpness, amplitude = params
-    return sg_sum_eval(directions, axis[:, None, None], sharpness[:, None, None], amplitude[:, None, None])
+    flat = directions.reshape(directions.shape[0], -1, 3)
+    cos = torch.bmm(flat, axis.transpose(1, 2)).clamp(-1.0, 1.0)
+    lobes = torch.exp(sharpness[:, None, :] * (cos - 1.0))
+    return torch.bmm(lobes, amplitude).reshape(*directions.shape[:-1], amplitude.shape[-1])
 
 
 def _above_horizon(directions, normals):
@@ -258,7 +273,14 @@ class Trainer:
         else:
             self.model = PerTexelParameters(len(data.images), config.sg_count, self.generator,
                                             data.channels, fraction).to(self.device)
-        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.learning_rate)
+        self.batch_texels = self._batch_for_device()
+        rate = config.learning_rate if self.batch_texels <= config.batch_texels else config.cuda_batch_learning_rate
+        # Fused Adam skips a step on its device when `found_inf` is set: no host synchronisation per step.
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=rate, fused=True,
+                                          capturable=self.device.type == "cuda")
+        self._graph = None  # the captured CUDA step, its index buffer and accumulators (see _graph_epoch)
+        self.graph_error = ""  # why CUDA graphs are not used, where they were asked for and failed
+        self._last_snapshot = None
         self.solid_angles = pixel_solid_angles(data.resolution, device=self.device)
         self.neighbours = neighbours  # (M, 2) adjacent texel index pairs: axis-alignment and interpolation terms
         self.axis_alignment = axis_alignment
@@ -306,7 +328,8 @@ class Trainer:
             index = torch.cat([index, partner])
         target = self.data.images[index].to(self.device)
         normals = self.data.normals[index].to(self.device)
-        directions = jittered_directions(len(index), self.data.resolution, self.generator).to(self.device)
+        generator = self.generator if self.device.type == "cpu" else None
+        directions = jittered_directions(len(index), self.data.resolution, generator, self.device)
         params = self.constrained_parameters(index)
         loss, _ = lightfield_loss(params, target, normals, directions, self.solid_angles,
                                   self.config.below_horizon_weight)
@@ -331,10 +354,21 @@ class Trainer:
         partner = torch.where(paired, targets[slot], index) if len(targets) else index.clone()
         return partner, paired
 
+    def _batch_for_device(self) -> int:
+        """The configured batch; for the CNN on CUDA as many texels as `cuda_batch_pixels` allows, the whole atlas
+        at most."""
+        batch = self.config.batch_texels
+        if self.device.type == "cuda" and self.mode == "cnn":
+            batch = max(batch, self.config.cuda_batch_pixels // self.data.resolution ** 2)
+        return max(1, min(batch, len(self.data.images)))
+
     def _texels_per_step(self) -> int:
         """Texels a step starts from (half the batch with the interpolation term: the other half are partners)."""
-        batch = max(1, min(self.config.batch_texels, len(self.data.images)))
-        return max(1, batch // 2) if self._partners is not None else batch
+        return max(1, self.batch_texels // 2) if self._partners is not None else self.batch_texels
+
+    def _uses_graph(self) -> bool:
+        return (self.device.type == "cuda" and self.config.cuda_graphs and not self.graph_error and self.mode == "cnn"
+                and self._partners is None)
 
     def _alignment_penalty(self, index):
         """Mean over neighbour pairs inside the batch of (1 - a_j . b_j) per SG slot (Paper I's 'aligned axes')."""
@@ -348,20 +382,58 @@ class Trainer:
         return (1 - (a * b).sum(-1)).mean()
 
     def _step(self, index):
-        """One Adam step; returns the loss as a 0-d tensor, or None (nothing changed) when the loss or a gradient is
-        not finite. One host synchronisation: the finiteness flag (per-step loss floats and per-parameter checks
-        each made one, which a GPU pays for in idle time)."""
-        self.optimizer.zero_grad(set_to_none=True)
+        """One Adam step on the texels `index`; returns (loss, skipped) as 0-d device tensors and never synchronises
+        with the host. A step whose loss or gradients are not finite changes nothing: fused Adam skips it on the
+        device (`found_inf`), its loss counts 0 and `skipped` 1."""
         loss = self._batch_loss(index)
         loss.backward()
-        finite = torch.isfinite(loss.detach())
-        for p in self.model.parameters():
-            if p.grad is not None:
-                finite = finite & torch.isfinite(p.grad).all()
-        if not bool(finite):
-            return None
+        grads = [p.grad for p in self.model.parameters() if p.grad is not None]
+        # one norm over every gradient: NaN or infinity anywhere makes it non-finite
+        bad = (~torch.isfinite(loss.detach() + torch.nn.utils.get_total_norm(grads, norm_type=1.0))).float()
+        self.optimizer.found_inf = bad
         self.optimizer.step()
-        return loss.detach()
+        return torch.where(bad > 0, 0.0, loss.detach()), bad
+
+    def _eager_epoch(self, order, batch, sums):
+        for start in range(0, len(order), batch):
+            index = order[start:start + batch]
+            self.optimizer.zero_grad(set_to_none=True)
+            loss, bad = self._step(index)
+            sums += torch.stack([loss * len(index), (1.0 - bad) * len(index), bad])
+
+    def _graph_epoch(self, order, batch, sums):
+        """The epoch as replays of one captured CUDA graph (forward, backward, fused Adam, the sums): one launch a
+        step. The order is padded to whole batches with its own start. The first capture runs three eager warm-up
+        steps first (CUDA's recipe); they train and count like any step."""
+        if self._graph is None:
+            index = order[:batch].clone()
+            side = torch.cuda.Stream(self.device)
+            side.wait_stream(torch.cuda.current_stream(self.device))
+            with torch.cuda.stream(side):
+                for _ in range(3):
+                    self.optimizer.zero_grad(set_to_none=True)
+                    loss, bad = self._step(index)
+                    sums += torch.stack([loss * batch, (1.0 - bad) * batch, bad])
+            torch.cuda.current_stream(self.device).wait_stream(side)
+            self.optimizer.zero_grad(set_to_none=True)
+            step_sums = torch.zeros(3, device=self.device)
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph):
+                loss, bad = self._step(index)
+                step_sums += torch.stack([loss * batch, (1.0 - bad) * batch, bad])
+            self._graph = (graph, index, step_sums)
+        graph, index, step_sums = self._graph
+        if len(order) % batch:
+            order = torch.cat([order, order[:batch - len(order) % batch]])
+        step_sums.zero_()
+        for start in range(0, len(order), batch):
+            index.copy_(order[start:start + batch])
+            graph.replay()
+        sums += step_sums
+
+    def _snapshot_every(self) -> int:
+        """Epochs between weight snapshots: every epoch, or enough epochs to hold 16 steps (short CUDA epochs)."""
+        return max(1, math.ceil(16 / math.ceil(len(self.data.images) / self._texels_per_step())))
 
     def _snapshot(self) -> dict:
         return {"model": {k: v.clone() for k, v in self.model.state_dict().items()},
@@ -371,11 +443,12 @@ class Trainer:
         for group in self.optimizer.param_groups:
             group["lr"] *= self.config.lr_drop_on_nan
         self.state.nan_recoveries += 1
+        self._graph = None  # a captured step holds the old rate
 
     def _recover_from_nan(self, snapshot):
         """Weights that became non-finite: back to `snapshot` (the epoch's start), at a lower learning rate."""
         self.model.load_state_dict(snapshot["model"])
-        self.optimizer.load_state_dict(snapshot["optimizer"])
+        self.optimizer.load_state_dict(snapshot["optimizer"])  # new state tensors: a captured step is stale
         self._lower_rate()
 
     def train(self, progress=None, should_cancel=lambda: False, epochs: int | None = None,
@@ -395,24 +468,37 @@ class Trainer:
             if spent >= config.time_budget_s:
                 state.stopped_because = "time budget"
                 break
-            if self._plateaued():
-                state.stopped_because = "plateau"
+            plateaued = self._plateaued()
+            if plateaued:
+                state.stopped_because = plateaued
                 break
             tick = time.perf_counter()
-            order = torch.randperm(texels, generator=self.generator)
-            snapshot = self._snapshot()  # once an epoch: a finite step can still leave non-finite weights (rare)
-            total, count = torch.zeros((), device=self.device), 0
-            for start in range(0, texels, batch):
-                index = order[start:start + batch]
-                loss = self._step(index)
-                if loss is None:  # skipped before it changed anything
-                    self._lower_rate()
-                    continue
-                total = total + loss * len(index)
-                count += len(index)
-            if not all(bool(torch.isfinite(p).all()) for p in self.model.parameters()):
-                self._recover_from_nan(snapshot)
-                total, count = torch.zeros((), device=self.device), 0
+            if self.device.type == "cpu":
+                order = torch.randperm(texels, generator=self.generator)
+            else:  # drawn on the device: a copy from the host would wait for the device's queue
+                order = torch.randperm(texels, device=self.device)
+            if self._last_snapshot is None or state.epoch % self._snapshot_every() == 0:
+                # a finite step can still leave non-finite weights (rare): the snapshot is what comes back then
+                self._last_snapshot = self._snapshot()
+            sums = torch.zeros(3, device=self.device)  # loss x texels, texels and steps skipped, on the device
+            if self._uses_graph():
+                try:
+                    self._graph_epoch(order, batch, sums)
+                except RuntimeError as error:  # a CUDA graph this torch cannot capture: the eager steps instead
+                    self.graph_error = f"CUDA graph capture failed ({error}); eager steps instead"
+                    self._graph = None
+                    torch.cuda.synchronize(self.device)
+                    sums.zero_()
+                    self._eager_epoch(order, batch, sums)
+            else:
+                self._eager_epoch(order, batch, sums)
+            weights = torch.nn.utils.get_total_norm([p.detach() for p in self.model.parameters()], norm_type=1.0)
+            total, count, skipped, finite = torch.cat([sums, torch.isfinite(weights).float()[None]]).tolist()
+            for _ in range(int(skipped)):  # one host synchronisation an epoch, above
+                self._lower_rate()
+            if not finite:
+                self._recover_from_nan(self._last_snapshot)
+                total, count = 0.0, 0
             spent += time.perf_counter() - tick
             state.epoch += 1
             # an epoch without a kept step repeats the last loss (0 would read as converged)
@@ -433,14 +519,21 @@ class Trainer:
             self.save(self.checkpoint)
         return state
 
-    def _plateaued(self) -> bool:
-        losses = self.state.losses
+    def _plateaued(self) -> str:
+        """Why the loss has levelled off ("plateau", "little left to gain in the budget"), or "" if it has not."""
+        losses, seconds = self.state.losses, self.state.seconds
         steps_per_epoch = math.ceil(len(self.data.images) / self._texels_per_step())
         window = max(self.config.plateau_epochs, math.ceil(self.config.plateau_steps / steps_per_epoch))
         if len(losses) < 2 * window:
-            return False
+            return ""
         last, before = np.mean(losses[-window:]), np.mean(losses[-2 * window:-window])
-        return last > before * (1 - self.config.plateau_rel)
+        if last > before * (1 - self.config.plateau_rel):
+            return "plateau"
+        elapsed, remaining = seconds[-1] - seconds[-1 - window], self.config.time_budget_s - seconds[-1]
+        if math.isfinite(remaining) and elapsed > 0 and (before - last) / elapsed * remaining < \
+                self.config.plateau_budget_rel * last:
+            return "little left to gain in the budget"
+        return ""
 
     # --- checkpoints (torch.load with weights_only=True: no pickle of arbitrary objects) --------------
     def save(self, path: Path):
@@ -460,6 +553,8 @@ class Trainer:
         self.amplitude_scale = float(data["amplitude_scale"])
         self.model.load_state_dict(data["model"])
         self.optimizer.load_state_dict(data["optimizer"])
+        for group in self.optimizer.param_groups:  # a checkpoint from before the fused optimiser
+            group.update(fused=True, capturable=self.device.type == "cuda")
         self.generator.set_state(data["generator"])
         torch.set_rng_state(data["torch_rng"])
         self.state = TrainState(**data["state"])

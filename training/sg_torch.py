@@ -35,7 +35,7 @@ __all__ = [
     "dot", "safe_normalize", "orthonormal_tangents", "one_minus_exp_neg2x_over_x",
     "sg_eval", "sg_integral", "sg_inner_product", "clamp_roughness", "ggx_alpha", "ndf_sg", "ASG",
     "reflection_frame", "warp_ndf_to_asg", "asg_eval", "sg_asg_convolve", "fresnel_schlick",
-    "smith_lambda_ggx", "smith_g2_ggx", "ggx_ndf", "microfacet_factor", "normalize_or_zero", "horizon_fraction",
+    "smith_lambda_ggx", "smith_g2_ggx", "ggx_ndf", "ggx_brdf_cos_white", "microfacet_factor", "normalize_or_zero", "horizon_fraction",
     "sg_glossy", "sg_glossy_mirror_warp", "bessel_i_scaled",
     "sg_irradiance_series", "sg_irradiance_fitted", "sg_irradiance", "sanitize_sg_params", "sg_sum_eval",
 ]
@@ -159,6 +159,19 @@ def ggx_ndf(ndoth, alpha):
     a2 = alpha**2
     c = torch.clamp(ndoth, 0, 1)
     return a2 / (math.pi * ((c * c) * (a2 - 1) + 1) ** 2)
+
+
+def ggx_brdf_cos_white(light, view, normal, roughness):
+    """sg_math.ggx_brdf_cos_white: D G / (4 n.v) where n.l > 0, else 0 (the refits' integrand, F0 = 1)."""
+    alpha = ggx_alpha(roughness)
+    ndotl, ndotv_signed, vdotv = dot(normal, light), dot(normal, view), dot(view, view)
+    ndotv = torch.clamp(ndotv_signed, NDOTV_MIN, 1)
+    ldotv = dot(light, view)
+    length = torch.sqrt(torch.clamp_min(dot(light, light) + 2 * ldotv + vdotv, AXIS_EPS * AXIS_EPS))
+    ndoth = torch.where(length <= AXIS_EPS, normal[..., 2], (ndotl + ndotv_signed) / length)
+    d = ggx_ndf(ndoth, alpha)
+    g = smith_g2_ggx(torch.clamp_min(ndotl, NDOTV_MIN), ndotv, alpha)
+    return torch.where(ndotl > 0, d * g / (4 * ndotv), 0.0)
 
 
 def sg_glossy_mirror_warp(axis, sharpness, amplitude, normal, view, roughness, f0):

@@ -118,13 +118,15 @@ def evenly(items: np.ndarray, count: int) -> np.ndarray:
 
 
 def shaded_errors(images, normals, axis, sharpness, amplitude, atlas, texel_info: dict, texels, roughness,
-                  only=None) -> dict:
+                  only=None, device="cpu") -> dict:
     """Material name -> relative RMSE between the node group's glossy of the SGs and the exact GGX reflection of
     the rendered light fields, on views the refit never fits (glossy_refit.shaded_error), over up to
     ERROR_TEXELS_PER_MATERIAL of the material's texels rough enough for the quadrature (of the materials named in
-    `only` if given)."""
-    from .glossy_refit import ERROR_TEXELS_PER_MATERIAL, shaded_error
+    `only` if given), on the training `device`."""
+    from .glossy_refit import ERROR_TEXELS_PER_MATERIAL
+    from .glossy_refit_torch import error_functions
 
+    shaded_error = error_functions(device)[0]
     errors = {}
     for name, members in _error_members(atlas, texel_info, texels, roughness, images.shape[1], only).items():
         pick = evenly(members, ERROR_TEXELS_PER_MATERIAL)
@@ -134,12 +136,15 @@ def shaded_errors(images, normals, axis, sharpness, amplitude, atlas, texel_info
 
 
 def interpolated_errors(images, normals, axis, sharpness, amplitude, atlas, texel_info: dict, texels,
-                        roughness, only=None) -> dict:
+                        roughness, only=None, device="cpu") -> dict:
     """Material name -> the same error halfway between atlas neighbours, with the SGs blended as the node group's
     bilinear lookup blends them (glossy_refit.interpolated_shaded_error), over up to ERROR_TEXELS_PER_MATERIAL
-    neighbour pairs of the material's texels (of the materials named in `only` if given)."""
-    from .glossy_refit import ERROR_TEXELS_PER_MATERIAL, atlas_neighbour_pairs, interpolated_shaded_error
+    neighbour pairs of the material's texels (of the materials named in `only` if given), on the training
+    `device`."""
+    from .glossy_refit import ERROR_TEXELS_PER_MATERIAL, atlas_neighbour_pairs
+    from .glossy_refit_torch import error_functions
 
+    interpolated_shaded_error = error_functions(device)[1]
     errors = {}
     for name, members in _error_members(atlas, texel_info, texels, roughness, images.shape[1], only).items():
         pairs = atlas_neighbour_pairs(texels[members])
@@ -176,7 +181,7 @@ def keep_refit_where_better(trained: tuple, refitted: tuple, before: dict, after
 
 
 def revert_where_worse_between_texels(trained, current, kept: list, between: dict, images, normals, axis,
-                                      sharpness, atlas, texel_info: dict, texels, roughness):
+                                      sharpness, atlas, texel_info: dict, texels, roughness, device="cpu"):
     """The amplitude refit is kept per material on the texels' own error (keep_refit_where_better); a lobe the
     views hardly see can still grow where the bilinear lookup blends normals (docs §19, before the ridge floor:
     an amplitude 1.02 -> 1317, error between texels 0.34 (the CNN's) -> 34.2 while the texels' own error fell).
@@ -187,7 +192,7 @@ def revert_where_worse_between_texels(trained, current, kept: list, between: dic
     if not measured:
         return current, kept, {}, between
     trained_between = interpolated_errors(images, normals, axis, sharpness, trained, atlas, texel_info, texels,
-                                          roughness, only=measured)
+                                          roughness, only=measured, device=device)
     # keep_refit_where_better with the roles swapped: the trained amplitudes are taken where they are better.
     (result,), back, _ = keep_refit_where_better((current,), (trained,), {name: between[name] for name in measured},
                                                  trained_between, atlas, texel_info, texels)
@@ -237,7 +242,8 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
 
     from .baselines import bytes_per_texel_fixed_sg, bytes_per_texel_sh_l2, eval_sh, fit_fixed_sg, fit_sh_l2
     from .glossy_lobe_fit import LOBE_REFIT_GUARD_TOLERANCE, lobe_refit_min_roughness, lobe_refit_steps
-    from .glossy_refit import refit_min_roughness, refit_steps
+    from .glossy_refit import refit_min_roughness
+    from .glossy_refit_torch import amplitude_refit_steps
     from .sg_fit import (LightFieldData, TrainConfig, Trainer, energy_kept, error_metrics,
                                  midpoint_parameters, pair_indices, reconstruct, unit_midpoint)
 
@@ -314,24 +320,25 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
             if kind == "lightfield":  # amplitudes fitted through the node group's glossy (glossy_refit)
                 refit_start = time.perf_counter()
                 before = shaded_errors(images, normals, axis, sharpness, amplitude, atlas, texel_info, texels,
-                                       roughness)
+                                       roughness, device=device)
                 least = refit_min_roughness(images.shape[1])
                 chosen = np.flatnonzero(roughness >= least)
                 refitted = amplitude.copy()
                 refitted[chosen] = yield from _relayed(
-                    refit_steps(images[chosen], normals[chosen], axis[chosen], sharpness[chosen], amplitude[chosen],
-                                roughness[chosen], counts[chosen]),
+                    amplitude_refit_steps(images[chosen], normals[chosen], axis[chosen], sharpness[chosen],
+                                          amplitude[chosen], roughness[chosen], counts[chosen], device=device),
                     lambda fraction: ((k + training_share + shares[1] * fraction) / len(kinds),
                                       f"{kind}: amplitudes refitted through the glossy, {100 * fraction:.0f} %"))
-                after = shaded_errors(images, normals, axis, sharpness, refitted, atlas, texel_info, texels, roughness)
+                after = shaded_errors(images, normals, axis, sharpness, refitted, atlas, texel_info, texels, roughness,
+                                      device=device)
                 trained_amplitude = amplitude
                 (amplitude,), kept, reverted = keep_refit_where_better((amplitude,), (refitted,), before, after, atlas,
                                                                        texel_info, texels)
                 interpolated = interpolated_errors(images, normals, axis, sharpness, amplitude, atlas, texel_info,
-                                                   texels, roughness)
+                                                   texels, roughness, device=device)
                 amplitude, kept, reverted_between, interpolated = revert_where_worse_between_texels(
                     trained_amplitude, amplitude, kept, interpolated, images, normals, axis, sharpness, atlas,
-                    texel_info, texels, roughness)
+                    texel_info, texels, roughness, device)
                 final_shaded_error = {name: after[name] if name in kept else error for name, error in before.items()}
                 refit_report = {"seconds": round(time.perf_counter() - refit_start, 2), "texels": len(chosen),
                                 "min_roughness": round(least, 3), "shaded_error_before": before,
@@ -360,7 +367,7 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
                             value[group] = new
                         done += len(group)
                     lobe_after = interpolated_errors(images, normals, *refitted, atlas, texel_info, texels, roughness,
-                                                     only=groups)
+                                                     only=groups, device=device)
                     lobe_before = {name: error for name, error in interpolated.items() if name in groups}
                     (axis, sharpness, amplitude), lobe_kept, lobe_reverted = keep_refit_where_better(
                         (axis, sharpness, amplitude), refitted, lobe_before, lobe_after, atlas, texel_info, texels,
@@ -374,7 +381,8 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
                                     for name, error in interpolated.items()}
                     if lobe_kept:
                         final_shaded_error.update(shaded_errors(images, normals, axis, sharpness, amplitude, atlas,
-                                                                texel_info, texels, roughness, only=lobe_kept))
+                                                                texel_info, texels, roughness, only=lobe_kept,
+                                                                device=device))
         prediction = eval_sh(coefficients, images.shape[1]) if encoder == "sh_l2" else \
             reconstruct(axis, sharpness, amplitude, images.shape[1])
         metrics = error_metrics(prediction, images, normals)
@@ -386,9 +394,10 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
                 metrics["amplitude_refit"] = refit_report
             else:
                 metrics["shaded_error"] = shaded_errors(images, normals, axis, sharpness, amplitude, atlas,
-                                                        texel_info, texels, roughness)
+                                                        texel_info, texels, roughness, device=device)
                 metrics["interpolated_shaded_error"] = interpolated_errors(images, normals, axis, sharpness, amplitude,
-                                                                           atlas, texel_info, texels, roughness)
+                                                                           atlas, texel_info, texels, roughness,
+                                                                           device=device)
         picture = f"train_{kind}.png"  # rendered (left) | SG reconstruction (right), 16 texels each
         above = above_horizon_fraction(normals, images.shape[1]).reshape(prediction.shape[:3])[..., None]
         target_mosaic, predicted_mosaic = preview_mosaic(images), preview_mosaic(prediction * above)
