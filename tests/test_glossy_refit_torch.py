@@ -102,3 +102,33 @@ def test_the_guards_errors_twin_matches_numpy_at_texels_and_between_them():
     assert shaded is reference.shaded_error and between is reference.interpolated_shaded_error
     assert twin.shaded_error(images, normals, axis, sharpness, amplitude, roughness) == pytest.approx(
         reference.shaded_error(images, normals, axis, sharpness, amplitude, roughness), rel=1e-4)
+
+
+def test_both_refits_fit_the_same_target_computed_once():
+    from sg_lightfield.training.glossy_lobe_fit import lobe_refit_steps
+
+    images, normals, axis, sharpness, amplitude = scene(texels=12)
+    roughness = np.linspace(0.3, 0.6, 12)
+    targets = twin.fitted_view_targets(images, normals, roughness)
+    assert targets.shape == (12, len(reference.REFIT_VIEW_COSINES) * reference.REFIT_VIEW_AZIMUTHS, 3)
+    np.testing.assert_allclose(twin.fitted_view_targets(images, normals, roughness, device=torch.device("cpu")),
+                               targets)
+    biased = amplitude * 0.6
+    np.testing.assert_array_equal(reference.refit_amplitudes(images, normals, axis, sharpness, biased, roughness,
+                                                             targets=targets),
+                                  reference.refit_amplitudes(images, normals, axis, sharpness, biased, roughness))
+    np.testing.assert_allclose(twin.refit_amplitudes(images, normals, axis, sharpness, biased, roughness,
+                                                     targets=targets),
+                               twin.refit_amplitudes(images, normals, axis, sharpness, biased, roughness), rtol=1e-5)
+    texels = np.stack([np.zeros(12, np.int64), np.arange(12)], -1)
+
+    def lobes(**kwargs):
+        steps = lobe_refit_steps(images, normals, texels, axis, sharpness, biased, roughness, 3, 4, **kwargs)
+        while True:
+            try:
+                next(steps)
+            except StopIteration as done:
+                return done.value
+
+    for given, computed in zip(lobes(target=targets), lobes()):
+        np.testing.assert_array_equal(given, computed)

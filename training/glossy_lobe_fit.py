@@ -20,8 +20,7 @@ import torch
 
 from ..shaders.sg_math import SHARPNESS_MAX, SHARPNESS_MIN
 from . import glossy_refit_torch, sg_torch
-from .glossy_refit import (REFIT_BATCH, REFIT_LOBE_PIXELS, atlas_neighbour_pairs, hemisphere_views,
-                                   reflected_radiance, refit_min_roughness)
+from .glossy_refit import REFIT_LOBE_PIXELS, atlas_neighbour_pairs, hemisphere_views, refit_min_roughness
 
 LOBE_REFIT_RATE = 0.02  # Adam's step on unit-axis components, log sharpness and log amplitude
 LOBE_REFIT_SMOOTHNESS = 0.2  # weight of the neighbours' differing changes (1.0 held the fit back: 0.116 vs 0.100)
@@ -53,11 +52,12 @@ def lobe_refit_min_roughness(resolution: int) -> float:
 
 def lobe_refit_steps(images: np.ndarray, normals: np.ndarray, texels: np.ndarray, axis: np.ndarray,
                      sharpness: np.ndarray, amplitude: np.ndarray, roughness: np.ndarray, lobe_count: int,
-                     steps: int, device: str = "cpu"):
+                     steps: int, device: str = "cpu", target: np.ndarray | None = None):
     """One material's texels: light fields images (T, R, R, C), normals (T, 3), atlas texels (T, 2) [row, col],
     start SGs axis (T, N, 3), sharpness (T, N), amplitude (T, N, C), roughness (T,). SGs past lobe_count are left
-    as they are (zero). A generator: yields the fraction of steps done, returns (axis, sharpness, amplitude) as
-    float32 arrays of the input's shapes."""
+    as they are (zero). `target`: their fitted_view_targets where already computed (the amplitude refit's). A
+    generator: yields the fraction of steps done, returns (axis, sharpness, amplitude) as float32 arrays of the
+    input's shapes."""
     dtype = torch.float32
     t, n = np.shape(sharpness)
     k = int(min(max(lobe_count, 0), n))
@@ -65,12 +65,9 @@ def lobe_refit_steps(images: np.ndarray, normals: np.ndarray, texels: np.ndarray
     if t == 0 or k == 0 or steps <= 0:
         return tuple(result)
     views = hemisphere_views(normals)
-    if torch.device(device).type == "cpu":  # numpy: 2.5x faster than the torch twin on the CPU
-        target = torch.from_numpy(np.concatenate([
-            reflected_radiance(images[s:s + REFIT_BATCH], normals[s:s + REFIT_BATCH], views[s:s + REFIT_BATCH],
-                               roughness[s:s + REFIT_BATCH]) for s in range(0, t, REFIT_BATCH)]).astype(np.float32))
-    else:
-        target = glossy_refit_torch.reflected_radiance_batched(images, normals, views, roughness, device)
+    if target is None:  # the amplitude refit's target where the train stage passes it
+        target = glossy_refit_torch.fitted_view_targets(images, normals, roughness, device)
+    target = torch.as_tensor(np.asarray(target, np.float32))
 
     def tensor(x):
         return torch.as_tensor(np.asarray(x), dtype=dtype, device=device)

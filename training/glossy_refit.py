@@ -200,13 +200,25 @@ def refit_amplitudes(*args, **kwargs) -> np.ndarray:
             return done.value
 
 
+def fitted_view_targets(images: np.ndarray, normals: np.ndarray, roughness: np.ndarray) -> np.ndarray:
+    """(T, V, C) the GGX reflection of each texel's light field towards its fitted views (hemisphere_views): the
+    target both refits fit, computed once for both (it is most of their time on the CPU)."""
+    roughness = np.broadcast_to(np.asarray(roughness, np.float64), (len(images),))
+    parts = [reflected_radiance(images[s:s + REFIT_BATCH], normals[s:s + REFIT_BATCH],
+                                hemisphere_views(normals[s:s + REFIT_BATCH]), roughness[s:s + REFIT_BATCH])
+             for s in range(0, len(images), REFIT_BATCH)]
+    return np.concatenate(parts) if parts else np.zeros((0, len(REFIT_VIEW_COSINES) * REFIT_VIEW_AZIMUTHS,
+                                                         np.shape(images)[-1]))
+
+
 def refit_steps(images: np.ndarray, normals: np.ndarray, axis: np.ndarray, sharpness: np.ndarray,
                 amplitude: np.ndarray, roughness: np.ndarray, lobe_counts: np.ndarray | None = None,
-                ridge: float = REFIT_RIDGE):
+                ridge: float = REFIT_RIDGE, targets: np.ndarray | None = None):
     """Amplitudes (T, N, C) >= 0 fitted through the closed form (module docstring), from rendered light fields
     images (T, R, R, C), normals (T, 3), the CNN's axis (T, N, 3), sharpness (T, N), amplitude (T, N, C) and each
-    texel's roughness (T,). SGs past a texel's lobe count (T,) stay zero. A generator: yields the fraction of
-    texels done after each batch, returns the amplitudes."""
+    texel's roughness (T,). SGs past a texel's lobe count (T,) stay zero. `targets`: fitted_view_targets of these
+    texels where already computed. A generator: yields the fraction of texels done after each batch, returns the
+    amplitudes."""
     t, n = np.shape(sharpness)
     result = np.array(amplitude, np.float64)
     roughness = np.broadcast_to(np.asarray(roughness, np.float64), (t,))
@@ -214,7 +226,8 @@ def refit_steps(images: np.ndarray, normals: np.ndarray, axis: np.ndarray, sharp
     for start in range(0, t, REFIT_BATCH):
         index = np.arange(start, min(start + REFIT_BATCH, t))
         views = hemisphere_views(normals[index])
-        target = reflected_radiance(images[index], normals[index], views, roughness[index])
+        target = reflected_radiance(images[index], normals[index], views, roughness[index]) if targets is None \
+            else np.asarray(targets[index], np.float64)
         responses = closed_form_responses(axis[index], sharpness[index], normals[index], views, roughness[index])
         responses *= used[index][:, None, :]
         gram = np.einsum("bvn,bvm->bnm", responses, responses)

@@ -102,8 +102,18 @@ def nonnegative_quadratic_minimum(gram, rhs, start, sweeps: int = REFIT_SWEEPS) 
     return x
 
 
+def fitted_view_targets(images, normals, roughness, device="cpu") -> np.ndarray:
+    """glossy_refit.fitted_view_targets on the training device (numpy on the CPU), as float64 numpy."""
+    if torch.device(device).type == "cpu":
+        from .glossy_refit import fitted_view_targets as numpy_targets
+
+        return numpy_targets(images, normals, roughness)
+    return reflected_radiance_batched(images, normals, hemisphere_views(normals), roughness,
+                                      device).double().cpu().numpy()
+
+
 def refit_steps(images, normals, axis, sharpness, amplitude, roughness, lobe_counts=None, ridge: float = REFIT_RIDGE,
-                device="cpu"):
+                device="cpu", targets=None):
     """glossy_refit.refit_steps on `device`, `device_batch` texels a step: a generator of the fraction done that
     returns the amplitudes (T, N, C) as float32 numpy."""
     t, n = np.shape(sharpness)
@@ -114,7 +124,8 @@ def refit_steps(images, normals, axis, sharpness, amplitude, roughness, lobe_cou
     for start in range(0, t, batch):
         index = np.arange(start, min(start + batch, t))
         views = hemisphere_views(normals[index])
-        target = reflected_radiance(images[index], normals[index], views, roughness[index], device).double()
+        target = reflected_radiance(images[index], normals[index], views, roughness[index], device).double() \
+            if targets is None else _tensor(targets[index], device, torch.float64)
         responses = closed_form_responses(*(_tensor(x, device, torch.float64) for x in (
             axis[index], sharpness[index], normals[index], views, roughness[index])))
         responses = responses * _tensor(used[index], device, torch.float64)[:, None, :]

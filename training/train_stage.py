@@ -242,8 +242,8 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
 
     from .baselines import bytes_per_texel_fixed_sg, bytes_per_texel_sh_l2, eval_sh, fit_fixed_sg, fit_sh_l2
     from .glossy_lobe_fit import LOBE_REFIT_GUARD_TOLERANCE, lobe_refit_min_roughness, lobe_refit_steps
-    from .glossy_refit import refit_min_roughness
-    from .glossy_refit_torch import amplitude_refit_steps
+    from .glossy_refit import REFIT_VIEW_AZIMUTHS, REFIT_VIEW_COSINES, refit_min_roughness
+    from .glossy_refit_torch import amplitude_refit_steps, fitted_view_targets
     from .sg_fit import (LightFieldData, TrainConfig, Trainer, energy_kept, error_metrics,
                                  midpoint_parameters, pair_indices, reconstruct, unit_midpoint)
 
@@ -324,9 +324,15 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
                 least = refit_min_roughness(images.shape[1])
                 chosen = np.flatnonzero(roughness >= least)
                 refitted = amplitude.copy()
+                # the reflection both refits fit, once (most of their time on the CPU)
+                targets = np.zeros((len(images), len(REFIT_VIEW_COSINES) * REFIT_VIEW_AZIMUTHS, images.shape[-1]))
+                needed = np.flatnonzero(roughness >= min(least, lobe_refit_min_roughness(images.shape[1]))
+                                        if lobe_steps else roughness >= least)
+                targets[needed] = fitted_view_targets(images[needed], normals[needed], roughness[needed], device)
                 refitted[chosen] = yield from _relayed(
                     amplitude_refit_steps(images[chosen], normals[chosen], axis[chosen], sharpness[chosen],
-                                          amplitude[chosen], roughness[chosen], counts[chosen], device=device),
+                                          amplitude[chosen], roughness[chosen], counts[chosen], device=device,
+                                          targets=targets[chosen]),
                     lambda fraction: ((k + training_share + shares[1] * fraction) / len(kinds),
                                       f"{kind}: amplitudes refitted through the glossy, {100 * fraction:.0f} %"))
                 after = shaded_errors(images, normals, axis, sharpness, refitted, atlas, texel_info, texels, roughness,
@@ -362,7 +368,8 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
                         fitted = yield from _relayed(
                             lobe_refit_steps(images[group], normals[group], texels[group], axis[group],
                                              sharpness[group], amplitude[group], roughness[group],
-                                             int(counts[group].max()), lobe_steps, device), lobe_progress)
+                                             int(counts[group].max()), lobe_steps, device, targets[group]),
+                            lobe_progress)
                         for value, new in zip(refitted, fitted):
                             value[group] = new
                         done += len(group)
