@@ -123,12 +123,8 @@ def test_both_refits_fit_the_same_target_computed_once():
     texels = np.stack([np.zeros(12, np.int64), np.arange(12)], -1)
 
     def lobes(**kwargs):
-        steps = lobe_refit_steps(images, normals, texels, axis, sharpness, biased, roughness, 3, 4, **kwargs)
-        while True:
-            try:
-                next(steps)
-            except StopIteration as done:
-                return done.value
+        return reference.run_to_end(lobe_refit_steps(images, normals, texels, axis, sharpness, biased, roughness, 3,
+                                                     4, **kwargs))
 
     for given, computed in zip(lobes(target=targets), lobes()):
         np.testing.assert_array_equal(given, computed)

@@ -190,14 +190,18 @@ def nonnegative_quadratic_minimum(gram: np.ndarray, rhs: np.ndarray, start: np.n
     return x
 
 
-def refit_amplitudes(*args, **kwargs) -> np.ndarray:
-    """refit_steps run to the end."""
-    steps = refit_steps(*args, **kwargs)
+def run_to_end(steps):
+    """A generator's return value, what it yields (its progress) dropped."""
     while True:
         try:
             next(steps)
         except StopIteration as done:
             return done.value
+
+
+def refit_amplitudes(*args, **kwargs) -> np.ndarray:
+    """refit_steps run to the end."""
+    return run_to_end(refit_steps(*args, **kwargs))
 
 
 def fitted_view_targets(images: np.ndarray, normals: np.ndarray, roughness: np.ndarray) -> np.ndarray:
@@ -263,19 +267,25 @@ def interpolated_shaded_error(images, normals, axis, sharpness, amplitude, rough
     of the blended SGs (midpoint_parameters, as its bilinear lookup gives them) against the exact GGX reflection of
     the two light fields' mean, at the renormalised mean normal. What a viewer sees between texels: SGs fitted
     texel by texel can each be right and still blend into wrong lobes."""
-    rough = np.broadcast_to(np.asarray(roughness, np.float64), (len(images),))
-    axis, sharpness, amplitude = (np.asarray(x, np.float64) for x in (axis, sharpness, amplitude))
     error = norm = 0.0
-    for start in range(0, len(a), REFIT_BATCH):
-        i, j = a[start:start + REFIT_BATCH], b[start:start + REFIT_BATCH]
-        normal = unit_midpoint(normals[i], normals[j])
-        views = hemisphere_views(normal, HELD_OUT_VIEW_COSINES, HELD_OUT_VIEW_AZIMUTHS)
-        midpoint_roughness = 0.5 * (rough[i] + rough[j])
-        target = reflected_radiance(0.5 * (np.asarray(images[i], np.float64) + images[j]), normal, views,
-                                    midpoint_roughness)
-        blended_axis, blended_sharpness, blended_amplitude = midpoint_parameters(axis, sharpness, amplitude, i, j)
-        responses = closed_form_responses(blended_axis, blended_sharpness, normal, views, midpoint_roughness)
-        shaded = np.einsum("bvn,bnc->bvc", responses, blended_amplitude)
+    for light_field, normal, views, midpoint_roughness, blended in between_texel_batches(
+            images, normals, axis, sharpness, amplitude, roughness, a, b, REFIT_BATCH):
+        target = reflected_radiance(light_field, normal, views, midpoint_roughness)
+        responses = closed_form_responses(blended[0], blended[1], normal, views, midpoint_roughness)
+        shaded = np.einsum("bvn,bnc->bvc", responses, blended[2])
         error += float(((shaded - target) ** 2).sum())
         norm += float((target ** 2).sum())
     return float(np.sqrt(error / max(norm, 1e-300)))
+
+
+def between_texel_batches(images, normals, axis, sharpness, amplitude, roughness, a, b, batch: int):
+    """interpolated_shaded_error's inputs, `batch` pairs at a time: the two light fields' mean, the renormalised
+    mean normal, the held-out views about it, the mean roughness and the blended SGs (axis, sharpness, amplitude)."""
+    rough = np.broadcast_to(np.asarray(roughness, np.float64), (len(images),))
+    axis, sharpness, amplitude = (np.asarray(x, np.float64) for x in (axis, sharpness, amplitude))
+    for start in range(0, len(a), batch):
+        i, j = a[start:start + batch], b[start:start + batch]
+        normal = unit_midpoint(normals[i], normals[j])
+        yield (0.5 * (np.asarray(images[i], np.float64) + images[j]), normal,
+               hemisphere_views(normal, HELD_OUT_VIEW_COSINES, HELD_OUT_VIEW_AZIMUTHS), 0.5 * (rough[i] + rough[j]),
+               midpoint_parameters(axis, sharpness, amplitude, i, j))

@@ -15,7 +15,7 @@ from ..shaders.octahedral import pixel_directions, pixel_solid_angles
 from ..shaders.sg_math import ggx_alpha as ggx_alpha_numpy
 from . import sg_torch
 from .glossy_refit import (REFIT_RIDGE, REFIT_RIDGE_FLOOR, REFIT_SWEEPS, WINDOW_BATCH, WINDOW_PIXELS,
-                           hemisphere_views, lobe_supersampling)
+                           hemisphere_views, lobe_supersampling, run_to_end)
 
 DEVICE_BATCH = {"cpu": 32, "cuda": 1024}  # texels per step (memory on CUDA: ~0.5 GB of weights at R = 32)
 
@@ -143,12 +143,7 @@ def refit_steps(images, normals, axis, sharpness, amplitude, roughness, lobe_cou
 
 def refit_amplitudes(*args, **kwargs) -> np.ndarray:
     """refit_steps run to the end."""
-    steps = refit_steps(*args, **kwargs)
-    while True:
-        try:
-            next(steps)
-        except StopIteration as done:
-            return done.value
+    return run_to_end(refit_steps(*args, **kwargs))
 
 
 def amplitude_refit_steps(*args, device="cpu", **kwargs):
@@ -164,21 +159,12 @@ def amplitude_refit_steps(*args, device="cpu", **kwargs):
 def interpolated_shaded_error(images, normals, axis, sharpness, amplitude, roughness, a, b, device="cpu") -> float:
     """glossy_refit.interpolated_shaded_error on `device` (the refits' guards, measured before and after each
     refit: on a GPU machine their numpy took most of the refits' time)."""
-    from ..shaders.sg_math import midpoint_parameters, unit_midpoint
-    from .glossy_refit import HELD_OUT_VIEW_AZIMUTHS, HELD_OUT_VIEW_COSINES
+    from .glossy_refit import between_texel_batches
 
-    rough = np.broadcast_to(np.asarray(roughness, np.float64), (len(images),))
-    axis, sharpness, amplitude = (np.asarray(x, np.float64) for x in (axis, sharpness, amplitude))
     error = norm = 0.0
-    batch = device_batch(device)
-    for start in range(0, len(a), batch):
-        i, j = a[start:start + batch], b[start:start + batch]
-        normal = unit_midpoint(normals[i], normals[j])
-        views = hemisphere_views(normal, HELD_OUT_VIEW_COSINES, HELD_OUT_VIEW_AZIMUTHS)
-        midpoint_roughness = 0.5 * (rough[i] + rough[j])
-        target = reflected_radiance(0.5 * (np.asarray(images[i], np.float64) + images[j]), normal, views,
-                                    midpoint_roughness, device).double()
-        blended = midpoint_parameters(axis, sharpness, amplitude, i, j)
+    for light_field, normal, views, midpoint_roughness, blended in between_texel_batches(
+            images, normals, axis, sharpness, amplitude, roughness, a, b, device_batch(device)):
+        target = reflected_radiance(light_field, normal, views, midpoint_roughness, device).double()
         responses = closed_form_responses(*(_tensor(x, device, torch.float64) for x in (
             blended[0], blended[1], normal, views, midpoint_roughness)))
         shaded = torch.einsum("bvn,bnc->bvc", responses, _tensor(blended[2], device, torch.float64))
