@@ -446,7 +446,7 @@ class Trainer:
         self._graph = None  # a captured step holds the old rate
 
     def _recover_from_nan(self, snapshot):
-        """Weights that became non-finite: back to `snapshot` (the epoch's start), at a lower learning rate."""
+        """Weights that became non-finite: back to `snapshot` (the last epoch start snapshotted), at a lower rate."""
         self.model.load_state_dict(snapshot["model"])
         self.optimizer.load_state_dict(snapshot["optimizer"])  # new state tensors: a captured step is stale
         self._lower_rate()
