@@ -412,8 +412,8 @@ class BakePlan:
                     material.pop("sg_count", None)
         if stage != "capture":
             data["light_field_bounce_rule"] = LIGHT_FIELD_BOUNCE_RULE
-            if self.settings.irradiance_detail > 1:  # lightmap-only objects get no light fields then (render.py)
-                data["lightmap_only_light_fields"] = False
+            if self.settings.irradiance_detail > 1 and self.lightmap_only_objects:
+                data["lightmap_only_light_fields"] = False  # they get no light fields then (render.py)
         data.pop("warnings", None)  # prose: rewording it must not invalidate finished renders
         data["environment"].pop("reason", None)
         for obj in data["objects"]:

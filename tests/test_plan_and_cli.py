@@ -89,6 +89,19 @@ def test_stage_hashes_follow_what_outputs_depend_on_not_the_plans_wording():
     assert all(other.stage_hash(stage) != hashes[stage] for stage in hashes)
 
 
+def test_the_irradiance_detail_changes_the_renders_only_where_lightmap_only_objects_lose_their_light_fields():
+    """With the detail image, objects with only irradiance lightmaps get no light fields: room's renders change with
+    the detail, materials' (no such objects) stay valid for any detail (the bench re-applies a bake at detail 1)."""
+    for name, changes in (("demo:room", True), ("demo:materials", False)):
+        scene = build_demo_scene(name)
+        plans = {detail: build_plan(scene, BakeSettings.from_preset("draft", irradiance_detail=detail))
+                 for detail in (1, 4)}
+        assert bool(plans[4].lightmap_only_objects) == changes
+        for stage in ("render", "train"):
+            assert (plans[1].stage_hash(stage) != plans[4].stage_hash(stage)) == changes, (name, stage)
+        assert plans[1].stage_hash("apply") != plans[4].stage_hash("apply")
+
+
 def test_empty_scene_is_one_clear_error():
     with pytest.raises(BakeInputError, match="no mesh, curve or text objects .*empty"):
         build_plan(_scene_with(), DRAFT)
