@@ -325,6 +325,7 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
                 chosen = np.flatnonzero(roughness >= least)
                 refitted = amplitude.copy()
                 # the reflection both refits fit, once (most of their time on the CPU)
+                yield (k + training_share) / len(kinds), f"{kind}: the reflection the refits fit"
                 targets = np.zeros((len(images), len(REFIT_VIEW_COSINES) * REFIT_VIEW_AZIMUTHS, images.shape[-1]))
                 needed = np.flatnonzero(roughness >= min(least, lobe_refit_min_roughness(images.shape[1]))
                                         if lobe_steps else roughness >= least)
