@@ -1,4 +1,6 @@
 """SG fitting in torch: synthetic recovery, constraints, determinism, resume, NaN guard, black texels, export."""
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -313,3 +315,14 @@ def test_glossy_error_sees_what_a_surface_of_that_roughness_reflects():
     detailed = images + checker
     assert glossy_error(images, detailed, normals, 0.05) > 5 * glossy_error(images, detailed, normals, 0.6)
 
+
+
+def test_a_torch_older_than_the_training_needs_is_one_clear_error():
+    from sg_lightfield.bake_directory.bake_plan import BakeInputError
+    from sg_lightfield.training.train_stage import check_torch_version
+
+    for fine in (torch.__version__, "2.6.0", "2.13.0+cpu", "3.0.0a0"):
+        check_torch_version(fine)
+    for old in ("2.5.1", "1.13.1+cu117", "nightly"):
+        with pytest.raises(BakeInputError, match=re.escape(f"torch {old} is older than 2.6, which the training needs")):
+            check_torch_version(old)

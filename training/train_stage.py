@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import re
 import sys
 import time
 from dataclasses import dataclass, field
@@ -203,6 +204,17 @@ def revert_where_worse_between_texels(trained, current, kept: list, between: dic
             {name: trained_between[name] if name in worse else error for name, error in between.items()})
 
 
+TORCH_MIN = (2, 6)  # fused Adam on the CPU (2.4) and torch.nn.utils.get_total_norm (2.6)
+
+
+def check_torch_version(version: str) -> None:
+    """One clear error where the Python that trains has a torch older than the training needs."""
+    found = re.match(r"(\d+)\.(\d+)", version)
+    if found is None or tuple(map(int, found.groups())) < TORCH_MIN:
+        raise BakeInputError(f"torch {version} is older than {'.'.join(map(str, TORCH_MIN))}, which the training "
+                             "needs; install the training runtime (add-on preferences) or torch 2.13 in that Python")
+
+
 def _relayed(steps, progress):
     """Runs a generator that yields fractions done and returns a value: yields progress(fraction) for each
     fraction, returns the value."""
@@ -253,6 +265,7 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
     atlas, texel_info = read_texel_maps(out_dir, plan.stage_hash("capture"))
     settings = plan.settings
     device = device or settings.device
+    check_torch_version(torch.__version__)
     if device == "cuda" and not torch.cuda.is_available():
         raise BakeInputError("--device cuda: torch sees no CUDA device here; use --device cpu")
     sg_count = plan.max_sg_count or settings.sg_count or 16
