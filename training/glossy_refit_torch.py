@@ -1,5 +1,6 @@
-"""The refits' target and the amplitude refit in torch, on the training device: twins of glossy_refit's numpy
-(tests/test_glossy_refit_torch.py holds each pair to each other; the module docstring there says what is fitted).
+"""The refits' target, the amplitude refit and the guards' errors in torch, on the training device: twins of
+glossy_refit's numpy (whose module docstring says what is fitted; tests/test_glossy_refit_torch.py holds each pair
+equal).
 
 The target, the GGX reflection of each texel's light field towards 120 views (pixel_integrated_weights), is most of
 both refits' time on the CPU; on a GPU it and the amplitude refit's projected coordinate descent run on the device,
