@@ -378,6 +378,7 @@ def test_eevee_renders_the_baked_spheres_in_the_evaluate_stage(tmp_path):
     evaluation of the same nodes (the rough floor is EEVEE's own lighting, which lacks the emissive arcs'
     light without its ray tracing)."""
     from sg_lightfield.blender_addon.demo_scenes import build_demo_scene
+    from sg_lightfield.blender_addon.evaluate import evaluate_stage
     from sg_lightfield.blender_addon.pipeline import BakeJob
 
     scene = build_demo_scene("demo:spheres")
@@ -385,7 +386,10 @@ def test_eevee_renders_the_baked_spheres_in_the_evaluate_stage(tmp_path):
     # largest group has its own test
     settings = BakeSettings.from_preset("draft", lightfield_resolution=8, samples=8, training_budget_s=10.0,
                                         sg_count=4)
-    BakeJob(scene, settings, tmp_path).run()
+    job = BakeJob(scene, settings, tmp_path, stages=("capture", "render", "train", "apply"))
+    job.run()
+    # the stage the pipeline runs last, at one view of 160 x 90 (its Cycles renders were most of this test's time)
+    evaluate_stage(scene, job.plan, tmp_path, views=1, resolution=(160, 90))
     eevee = json.loads((tmp_path / "report.json").read_text())["errors"]["eevee"]
     assert "error" not in eevee, eevee
     assert (tmp_path / "evaluate_view0_eevee.png").is_file() and eevee["first_render_s"] > 0
