@@ -35,7 +35,8 @@ __all__ = [
     "dot", "safe_normalize", "orthonormal_tangents", "one_minus_exp_neg2x_over_x",
     "sg_eval", "sg_integral", "sg_inner_product", "clamp_roughness", "ggx_alpha", "ndf_sg", "ASG",
     "reflection_frame", "warp_ndf_to_asg", "asg_eval", "sg_asg_convolve", "fresnel_schlick",
-    "smith_lambda_ggx", "smith_g2_ggx", "ggx_ndf", "ggx_brdf_cos_white", "microfacet_factor", "normalize_or_zero", "horizon_fraction",
+    "smith_lambda_ggx", "smith_g2_ggx", "ggx_ndf", "ggx_brdf_cos_white", "microfacet_factor", "normalize_or_zero",
+    "horizon_fraction",
     "sg_glossy", "sg_glossy_mirror_warp", "bessel_i_scaled",
     "sg_irradiance_series", "sg_irradiance_fitted", "sg_irradiance", "sanitize_sg_params", "sg_sum_eval",
 ]
