@@ -137,8 +137,9 @@ def production_sized(data: dict, texels: int, resolution: int = 32) -> dict:
 
 
 def refit_timings(data: dict, device: str, texels: int, steps: int) -> dict:
-    """Seconds of the two refits on `device` as the train stage runs them there: the lobe refit (torch; its target
-    numpy on the CPU, torch on CUDA) and the amplitude refit (numpy on the CPU, its torch twin on CUDA)."""
+    """Seconds of the two refits on `device` with the code the train stage runs there: the lobe refit (torch; its
+    target numpy on the CPU, torch on CUDA) and the amplitude refit (numpy on the CPU, its torch twin on CUDA), each
+    computing the target itself (the train stage computes it once for both)."""
     from ..training.glossy_lobe_fit import lobe_refit_steps
     from ..training.glossy_refit_torch import amplitude_refit_steps
     from ..training.sg_fit import LightFieldData, TrainConfig, Trainer

@@ -382,9 +382,9 @@ class Trainer:
         return (1 - (a * b).sum(-1)).mean()
 
     def _step(self, index):
-        """One Adam step on the texels `index`; returns (loss, skipped) as 0-d device tensors and never synchronises
-        with the host. A step whose loss or gradients are not finite changes nothing: fused Adam skips it on the
-        device (`found_inf`), its loss counts 0 and `skipped` 1."""
+        """One Adam step on the texels `index`; returns its share of the epoch's sums (loss x texels, texels kept,
+        steps skipped) as a device tensor and never synchronises with the host. A step whose loss or gradients are
+        not finite changes nothing: fused Adam skips it on the device (`found_inf`), and it counts as skipped."""
         loss = self._batch_loss(index)
         loss.backward()
         grads = [p.grad for p in self.model.parameters() if p.grad is not None]
@@ -392,14 +392,13 @@ class Trainer:
         bad = (~torch.isfinite(loss.detach() + torch.nn.utils.get_total_norm(grads, norm_type=1.0))).float()
         self.optimizer.found_inf = bad
         self.optimizer.step()
-        return torch.where(bad > 0, 0.0, loss.detach()), bad
+        return torch.stack([torch.where(bad > 0, 0.0, loss.detach()) * len(index), (1.0 - bad) * len(index), bad])
 
     def _eager_epoch(self, order, batch, sums):
         for start in range(0, len(order), batch):
             index = order[start:start + batch]
             self.optimizer.zero_grad(set_to_none=True)
-            loss, bad = self._step(index)
-            sums += torch.stack([loss * len(index), (1.0 - bad) * len(index), bad])
+            sums += self._step(index)
 
     def _graph_epoch(self, order, batch, sums):
         """The epoch as replays of one captured CUDA graph (forward, backward, fused Adam, the sums): one launch a
@@ -412,15 +411,13 @@ class Trainer:
             with torch.cuda.stream(side):
                 for _ in range(3):
                     self.optimizer.zero_grad(set_to_none=True)
-                    loss, bad = self._step(index)
-                    sums += torch.stack([loss * batch, (1.0 - bad) * batch, bad])
+                    sums += self._step(index)
             torch.cuda.current_stream(self.device).wait_stream(side)
             self.optimizer.zero_grad(set_to_none=True)
             step_sums = torch.zeros(3, device=self.device)
             graph = torch.cuda.CUDAGraph()
             with torch.cuda.graph(graph):
-                loss, bad = self._step(index)
-                step_sums += torch.stack([loss * batch, (1.0 - bad) * batch, bad])
+                step_sums += self._step(index)
             self._graph = (graph, index, step_sums)
         graph, index, step_sums = self._graph
         if len(order) % batch:
