@@ -112,7 +112,7 @@ STAGE_SETTINGS["apply"] = STAGE_SETTINGS["evaluate"] = STAGE_SETTINGS["train"] |
 
 
 # Settings added after plan.json's first version, with the value that behaves as before they existed.
-SETTINGS_ADDED_LATER = {"irradiance_detail": 1}
+SETTINGS_ADDED_LATER = {"irradiance_detail": 1, "instance_copies": False}
 
 
 class BakeInputError(ValueError):
@@ -137,6 +137,9 @@ class BakeSettings:
     rough_materials: str = "irradiance"  # rough dielectrics: an irradiance lightmap, or the renderer's own lighting
     device: str = "cpu"
     irradiance_detail: int = 1  # diffuse light at this many times the texel density (1: from the light fields)
+    # Particle, vertex and face instances carry no attribute of their own for a tile: baked as object copies that
+    # render in their place (True), or left to the renderer's own lighting.
+    instance_copies: bool = False
 
     @property
     def lightmap_pass_samples(self) -> int:

@@ -7,6 +7,9 @@ What it changes in the scene (``remove_lightmap_uvs`` takes all of it away again
   same layer from a last, removable ``SG Lightmap UV`` modifier (lightmap_modifier), so its stack stays live;
 - every baked object gets its tile of the shared atlas as two custom properties (sglf_lightmap_offset and
   sglf_lightmap_scale: atlas_uv = offset + uv * scale), so duplicates get texels of their own;
+- a metaball or NURBS surface (no modifiers) is baked through a mesh stand-in that follows its surface
+  (stand_ins); the original is invisible to rays and probes and drawn as wire meanwhile; with the setting instance_copies,
+  particle, vertex and face instances are replaced by object copies (stand_ins), which bake as objects;
 - every instance gets a tile of its own too: a collection's objects are packed once into a block of tiles that
   each instancing empty gets a copy of (``sglf_lightmap_block`` on the empty: where its block is); a geometry-node
   instance's tile is a pair of instance attributes that the SG Lightmap UV modifier on its instancer writes.
@@ -24,7 +27,6 @@ below the real surface, and rays leaving along a smoothed normal would start ins
 """
 from __future__ import annotations
 
-import contextlib
 import math
 import time
 from dataclasses import asdict, dataclass, field
@@ -43,11 +45,13 @@ from ..bake_directory.texel_maps import (CAPTURE_PICTURES, CHANNEL, FLAG_BURIED,
                                   FLAG_GUTTER, FLAG_PUSHED_OUT, TEXEL_CHANNELS, TEXELS_FILE, TEXELS_JSON,
                                   save_capture_pictures)
 from ..bake_directory.texel_raster import centre_overlap_count, dilate, rasterize, shelf_pack, signed_areas
-from .scene_analysis import (active_scene, bake_targets, loop_triangle_arrays, principled_surface,
-                             transform_points, triangle_areas, unbaked)
+from .scene_analysis import (active_scene, bake_targets, instance_targets, instances_by_instancer, loop_triangle_arrays,
+                             principled_surface, render_evaluation, transform_points, triangle_areas, unbaked)
 from . import lightmap_modifier
 from .lightmap_modifier import user_modifiers
 from .irradiance_detail import DETAIL_FILE, bake_irradiance_detail, filled
+from .stand_ins import (COPYABLE, STAND_IN_TYPES, copied, copy_instances, ensure_stand_in, has_stand_in,
+                        remove_stand_ins)
 from .surface_probe import measure_surfaces
 
 LIGHTMAP_LAYER = "SGLightmap"
@@ -170,8 +174,8 @@ def lightmap_owners(scene) -> list:
 
 
 def remove_lightmap_uvs(scene) -> int:
-    """Undo capture's changes: drop the SGLightmap layers, SG Lightmap UV modifiers (with their carriers) and tile
-    rectangles it added. Returns the count of layers and modifiers removed."""
+    """Undo capture's changes: drop the SGLightmap layers, SG Lightmap UV modifiers (with their carriers), tile
+    rectangles and mesh stand-ins it added. Returns the count of layers, modifiers and stand-ins removed."""
     removed = 0
     for obj in lightmap_owners(scene):
         for key in TILE_KEYS:
@@ -185,7 +189,7 @@ def remove_lightmap_uvs(scene) -> int:
                 mesh.uv_layers.remove(layer)
                 removed += 1
             del mesh[OWNER_KEY]
-    return removed
+    return removed + remove_stand_ins(scene)
 
 
 def _validate_user_layer(obj, loops, layer_name, world_area, density):
@@ -431,38 +435,14 @@ def _store_tiles(targets, tiles, blocks, atlas_w, atlas_h) -> None:
         lightmap_modifier.set_instance_tiles(instancer, *zip(*rows))
 
 
-@contextlib.contextmanager
-def render_evaluation(objects):
-    """Evaluate `objects` as a render does for the block: each modifier shown as for rendering and subdivision at its
-    render levels (the viewport may show fewer). Every setting comes back afterwards."""
-    saved = []
-    try:
-        for obj in objects:
-            for modifier in getattr(obj, "modifiers", ()):
-                if modifier.show_viewport != modifier.show_render:
-                    saved.append((modifier, "show_viewport", modifier.show_viewport))
-                    modifier.show_viewport = modifier.show_render
-                if modifier.type in ("SUBSURF", "MULTIRES") and modifier.levels != modifier.render_levels:
-                    saved.append((modifier, "levels", modifier.levels))
-                    modifier.levels = modifier.render_levels
-            data = obj.data
-            if obj.type in ("CURVE", "FONT") and data.render_resolution_u and \
-                    data.resolution_u != data.render_resolution_u:
-                saved.append((data, "resolution_u", data.resolution_u))
-                data.resolution_u = data.render_resolution_u
-        yield
-    finally:
-        for owner, name, value in reversed(saved):
-            setattr(owner, name, value)
-
-
 def scene_bvh(scene, depsgraph):
     """World-space BVH of everything that renders a surface (meshes, curves, text, instances; winding made outward
     for negative scale) and the length of the scene's bounding-box diagonal."""
     vertices, polygons, offset = [], [], 0
     for instance in depsgraph.object_instances:
         obj = instance.object
-        if obj.type not in ("MESH", "CURVE", "FONT", "SURFACE", "META") or obj.original.hide_render:
+        if obj.type not in ("MESH", "CURVE", "FONT", "SURFACE", "META") or obj.original.hide_render \
+                or has_stand_in(obj.original):  # its stand-in, at the same place, is in the BVH
             continue
         mesh = obj.to_mesh()
         try:
@@ -605,6 +585,27 @@ def _rasterize_object(target, tile, depsgraph, material_ids, atlas_w, atlas_h, m
     return len(rows)
 
 
+def _add_stand_ins(scene, plan) -> None:
+    """Make the mesh stand-ins and instance copies the plan bakes through (an earlier capture's are kept)."""
+    for object_plan in plan.baked_objects:
+        obj = scene.objects.get(object_plan.name)
+        if not object_plan.instancer and obj is not None and obj.type in STAND_IN_TYPES:
+            ensure_stand_in(obj)
+    names = dict.fromkeys(o.instancer for o in plan.baked_objects if o.instancer)
+    instancers = [scene.objects[n] for n in names if n in scene.objects and not copied(scene.objects[n])]
+    if not plan.settings.instance_copies or not instancers:
+        return
+    with active_scene(scene), render_evaluation(instancers):
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        depsgraph.update()
+        found = instances_by_instancer(depsgraph)
+    for instancer in instancers:
+        instanced = found.get(instancer.name)
+        if instanced is not None and instanced.how in COPYABLE:
+            copy_instances(scene, instancer, instanced.how, instanced.entries,
+                           instance_targets(instancer.name, instanced))
+
+
 def capture(scene, plan, out_dir, *, lightmap_uv_layer: str = "", progress=_noop_progress,
             should_cancel=lambda: False) -> CaptureResult:
     """Run the capture stage for `plan` on `scene`, writing texel maps into `out_dir`."""
@@ -612,7 +613,9 @@ def capture(scene, plan, out_dir, *, lightmap_uv_layer: str = "", progress=_noop
     out_dir = Path(out_dir)
     warnings: list[str] = []
     progress(0.0, "lightmap UVs")
+    _add_stand_ins(scene, plan)
     with active_scene(scene) as depsgraph:
+        depsgraph.update()
         targets = bake_targets(scene, plan.baked_objects, depsgraph)
     objects = list(dict.fromkeys(t.obj for t in targets))
     with active_scene(scene), render_evaluation(objects):

@@ -11,6 +11,9 @@ Selectable everywhere as ``demo:NAME``: ``build_demo_scene("room")`` returns a n
              Principled BSDF inside a node group behind reroutes, a glossy sign with textured emission; and what
              the bake leaves to the renderer: a glass sphere, an alpha cut-out leaf card, a coated box; an area
              lamp and Blender's shipped interior HDRI.
+  geometry   what real scenes are built from, each glossy: a smooth monkey primitive, a live Bevel + Array +
+             Subdivision stack, extruded text, a bevelled curve, geometry-node instances, two collection instances,
+             a metaball, a NURBS sphere and particle-scattered pebbles, on a counter.
   hair       a head-like mesh with a groom made by Blender's shipped procedural hair node assets;
              ``hair-straight``, ``hair-wavy`` (= ``hair``), ``hair-curly`` and ``hair-clumped`` pick the style.
 """
@@ -419,8 +422,9 @@ def _monkey(bm):
 def build_geometry(scene):
     """What real scenes are built from, each glossy: a smooth-shaded monkey primitive (its quads split across
     lightmap charts), a bar whose Bevel + Array + Subdivision stack stays live, an extruded text, a bevelled curve
-    spheres instanced on a grid by Geometry Nodes and two instances of a collection of a cup and saucer, on a counter
-    under an area lamp and a shipped HDRI."""
+    spheres instanced on a grid by Geometry Nodes, two instances of a collection of a cup and saucer, a metaball of
+    two merging elements, a NURBS sphere and pebbles scattered by a particle system, on a counter under an area lamp
+    and a shipped HDRI."""
     _mesh_object(scene, "Counter", _box(5.0, 3.0, 0.2), _principled("Counter Top", (0.55, 0.5, 0.45), roughness=0.35),
                  Matrix.Translation((0.0, 0.0, -0.1)))
     monkey = _mesh_object(scene, "Suzanne", _monkey, _principled("Red Plastic", (0.6, 0.05, 0.04), roughness=0.25),
@@ -472,9 +476,40 @@ def build_geometry(scene):
         cup_instance.instance_type, cup_instance.instance_collection = "COLLECTION", cups
         cup_instance.location = location
         scene.collection.objects.link(cup_instance)
+    blob = bpy.data.objects.new("Blob", bpy.data.metaballs.new("Blob"))  # two merging elements
+    for co, radius in (((0.0, 0.0, 0.0), 0.3), ((-0.3, 0.1, 0.05), 0.22)):
+        element = blob.data.elements.new()
+        element.co, element.radius = co, radius
+    blob.data.resolution, blob.data.render_resolution = 0.08, 0.04
+    blob.data.materials.append(_principled("Pearl", (0.85, 0.83, 0.78), roughness=0.2))
+    blob.location = (1.55, 0.4, 0.25)
+    scene.collection.objects.link(blob)
+    pebble = _mesh_object(scene, "Pebble", _sphere(0.07, 12, 6), _principled("Obsidian", (0.04, 0.04, 0.05),
+                                                                             roughness=0.15))
+    pebble.hide_render = pebble.hide_viewport = True  # shown only through the particles
+    scatter = _mesh_object(scene, "Pebble Scatter", _box(0.5, 0.35, 0.01), None, Matrix.Translation((-0.45, -0.05, 0.07)))
+    scatter.show_instancer_for_render = False
+    scatter.modifiers.new("Pebbles", "PARTICLE_SYSTEM")
+    particles = scatter.particle_systems[0].settings
+    particles.count, particles.frame_start, particles.frame_end, particles.physics_type = 12, 1, 1, "NO"
+    particles.render_type, particles.instance_object, particles.size_random = "OBJECT", pebble, 0.3
+    particles.use_rotations, particles.rotation_factor_random = True, 1.0
+    particles.particle_size = 1.0  # the instances' scale (its default, 0.05, is for particles drawn as points)
+    dome = nurbs_sphere(scene, "Dome", 0.3, (-2.1, -0.15, 0.3))
+    dome.data.materials.append(_principled("Brass", (0.9, 0.7, 0.35), roughness=0.3, metallic=1.0))
     _area_lamp(scene, 200.0, (1.0, -1.5, 2.5), 15.0)
     _world(scene, hdri="interior", strength=0.6)
     _camera(scene, (1.9, -3.0, 1.7), (-0.2, 0.0, 0.25), lens=32.0)
+
+
+def nurbs_sphere(scene, name, radius, location):
+    """Blender's NURBS sphere primitive in `scene` (the Python API cannot give a spline a second row of points, so the
+    primitive's operator makes it)."""
+    with bpy.context.temp_override(scene=scene, view_layer=scene.view_layers[0], collection=scene.collection):
+        bpy.ops.surface.primitive_nurbs_surface_sphere_add(radius=radius, location=location, enter_editmode=False)
+    sphere = scene.view_layers[0].objects.active  # the operator's new object
+    sphere.name = sphere.data.name = name
+    return sphere
 
 
 # Modifier stacks per style: (asset node group, {input name: value}) after Generate Hair Curves.

@@ -24,8 +24,10 @@ def settings_from_panel(panel) -> BakeSettings:
     """The panel's knobs as BakeSettings: a named preset, or Custom with every knob as set."""
     device, rough_materials = panel.device.lower(), panel.rough_materials.lower()
     if panel.preset != "CUSTOM":
-        return BakeSettings.from_preset(panel.preset.lower(), device=device, rough_materials=rough_materials)
+        return BakeSettings.from_preset(panel.preset.lower(), device=device, rough_materials=rough_materials,
+                                        instance_copies=panel.instance_copies)
     return BakeSettings.from_preset("draft", texel_density=panel.texel_density, rough_materials=rough_materials,
+                                    instance_copies=panel.instance_copies,
                                     lightfield_resolution=panel.lightfield_resolution, samples=panel.samples,
                                     lightmap_samples=panel.lightmap_samples,
                                     sg_count=16 if panel.sg_count_auto else panel.sg_count,

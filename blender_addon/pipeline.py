@@ -23,6 +23,7 @@ from . import lightmap_modifier
 from .capture import LIGHTMAP_LAYER, TILE_KEYS, capture, lightmap_owners, remove_lightmap_uvs
 from .render import render_steps
 from .scene_analysis import build_plan, require_blender_version
+from .stand_ins import copied, is_stand_in, remove_stand_ins
 from .training_runtime import TORCH_HELP, find_torch_python, missing_torch_message, torch_in_process
 
 ETA_MIN_PROGRESS = 0.01  # of a stage, before its own rate is trusted over the plan's estimate
@@ -103,7 +104,8 @@ class BakeJob:
         exactly."""
         import numpy as np
 
-        snapshot = {"meshes": {}, "objects": {}, "carriers": {}, "instance_tiles": {}}
+        snapshot = {"meshes": {}, "objects": {}, "carriers": {}, "instance_tiles": {},
+                    "stand_ins": {o.name for o in self.scene.objects if is_stand_in(o) or copied(o)}}
         for obj in lightmap_owners(self.scene):
             for kind, helper in (("carriers", lightmap_modifier.carrier_of(obj)),
                                  ("instance_tiles", lightmap_modifier.instance_tiles_of(obj))):
@@ -143,6 +145,7 @@ class BakeJob:
             layer = obj.data.uv_layers.get(LIGHTMAP_LAYER)
             if uv is not None and layer is not None and len(uv) == 2 * len(obj.data.loops):
                 layer.uv.foreach_set("vector", uv)
+        remove_stand_ins(self.scene, keep=snapshot["stand_ins"])  # the ones this job's capture made
 
     # --- progress -------------------------------------------------------------------------------------
     def _stage_estimates_s(self) -> dict:

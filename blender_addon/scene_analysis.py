@@ -1,10 +1,11 @@
 """Scene analysis: decide what the bake models (DESIGN section 6) and build the BakePlan.
 
-Reads the scene only; never changes it.
+Reads the scene only: it is evaluated as a render evaluates it (render_evaluation), every setting put back after.
 """
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import sys
 from dataclasses import dataclass, field
@@ -15,6 +16,8 @@ import numpy as np
 from ..bake_directory.bake_plan import (GLOSSY_ROUGHNESS_MAX, ROUGH_METALLIC_MAX, BakeInputError, BakePlan, BakeSettings,
                                  EnvironmentPlan, MaterialPlan, ObjectPlan, auto_sg_count)
 from .lightmap_modifier import MODIFIER_TYPES, user_modifiers
+from .stand_ins import (COPYABLE, INSTANCE_COPY_KEY, INSTANCER_STATE_KEY, STAND_IN_TYPES, copied, copies_of, is_copy,
+                        is_stand_in, modifiers_turned_off, stand_in_of)
 from .surface_shaders import COPY_KEY, LeafInputs, NeedsNodes, analyse_surface, input_constant, leaves
 
 # An environment whose luminance-weighted chroma (max-min)/max stays below this is treated as grey:
@@ -184,6 +187,7 @@ class Instanced:
     sources: set = field(default_factory=set)  # the instanced objects' names; "generated geometry" for node output
     entries: list = field(default_factory=list)
     nested: bool = False  # instances inside instances (a collection through Collection Info, nested instancers)
+    copies: bool = False  # baked as object copies (stand_ins.copy_instances): the settings ask for it, or done
 
     def description(self) -> str:
         return f"{self.count} {self.how} instance{'s' if self.count != 1 else ''} of {', '.join(sorted(self.sources))}"
@@ -192,8 +196,10 @@ class Instanced:
         """Why per-instance lightmaps cannot be built for these instances ("" when they can)."""
         if "generated geometry" in self.sources:
             return "their geometry is made inside the node tree, not an object whose materials the bake can switch"
-        if self.how in ("particle", "vertex", "face"):
-            return f"{self.how} instances carry no attribute of their own for the baked material to find its texels by"
+        if self.how in COPYABLE:
+            return "" if self.copies else (f"{self.how} instances carry no attribute of their own for the baked "
+                                           "material to find its texels by; Instances as Copies bakes each as an "
+                                           "object copy")
         if self.nested:
             return "instances nested inside instances share one attribute, not one lightmap tile each"
         return ""
@@ -202,6 +208,9 @@ class Instanced:
         why = self.unsupported()
         if why:
             return f"left to the renderer: {self.description()} ({why}; each keeps the renderer's own lighting)"
+        if self.copies:
+            return (f"its {self.description()}: each baked as an object copy with texels of its own, which renders "
+                    "in its place until Remove SG Bake (listed below)")
         return f"its {self.description()}: each baked with texels of its own (listed below)"
 
 
@@ -234,6 +243,31 @@ def instances_by_instancer(depsgraph) -> dict:
     return found
 
 
+def copied_instancers(scene) -> dict:
+    """Instancer name -> Instanced, for the instancers whose instances the bake replaced by object copies (they no
+    longer instance): rebuilt from the copies, in the instancer's order."""
+    found = {}
+    for instancer in scene.objects:
+        if copied(instancer):
+            entry = Instanced(json.loads(instancer[INSTANCER_STATE_KEY])["how"], copies=True)
+            for copy in copies_of(instancer):
+                source = copy[INSTANCE_COPY_KEY]["source"]
+                entry.count += 1
+                entry.sources.add(source)
+                entry.entries.append((source, [list(row) for row in copy.matrix_world]))
+            found[instancer.name] = entry
+    return found
+
+
+def scene_instancers(scene, depsgraph, settings) -> dict:
+    """Every instancer of the scene (instances_by_instancer), those replaced by copies included, each marked with
+    whether its instances are (to be) baked as copies."""
+    found = {**instances_by_instancer(depsgraph), **copied_instancers(scene)}
+    for instanced in found.values():
+        instanced.copies |= settings.instance_copies and instanced.how in COPYABLE
+    return found
+
+
 def instance_targets(instanced_name, instanced: Instanced) -> list:
     """The plan names of a supported instancer's instances, in order: 'Grid: Sphere #3'."""
     return [f"{instanced_name}: {source} #{k + 1}" for k, (source, _) in enumerate(instanced.entries)]
@@ -259,12 +293,29 @@ def bake_targets(scene, object_plans, depsgraph) -> list:
         raise BakeInputError(f"objects {missing} of the plan are not in scene '{scene.name}'; make a new plan")
     instancers, targets = None, []
     for plan in object_plans:
+        instancer = scene.objects.get(plan.instancer) if plan.instancer else None
+        if instancer is not None and copied(instancer):  # an object copy stands in for the instance
+            copies = copies_of(instancer)
+            if plan.instance >= len(copies) or copies[plan.instance][INSTANCE_COPY_KEY]["source"] != plan.source:
+                raise BakeInputError(f"'{plan.name}': the object copies of '{plan.instancer}''s instances changed "
+                                     "since the plan; make a new plan")
+            copy = copies[plan.instance]
+            targets.append(BakeTarget(plan.name, copy, copy.matrix_world.copy()))
+            continue
         if not plan.instancer:
             obj = scene.objects[plan.name]
+            if obj.type in STAND_IN_TYPES:  # baked through its mesh stand-in, which the capture makes
+                obj = stand_in_of(obj)
+                if obj is None:
+                    raise BakeInputError(f"'{plan.name}': its mesh stand-in is missing (the capture makes it); run "
+                                         "the capture stage first")
             targets.append(BakeTarget(plan.name, obj, obj.matrix_world.copy()))
             continue
         instancers = instances_by_instancer(depsgraph) if instancers is None else instancers
         found = instancers.get(plan.instancer)
+        if found is not None and found.how in COPYABLE:
+            raise BakeInputError(f"'{plan.name}': its object copy is missing (the capture makes it); run the capture "
+                                 "stage first")
         if found is None or plan.instance >= len(found.entries) or found.entries[plan.instance][0] != plan.source:
             raise BakeInputError(f"'{plan.name}': the instances of '{plan.instancer}' changed since the plan; make a "
                                  "new plan")
@@ -288,9 +339,13 @@ def _instance_plans(instancer, instanced: Instanced, settings, depsgraph, surfac
         reason = "; ".join(([f"glossy material(s): {', '.join(glossy)}"] if glossy else [])
                            + ([f"irradiance lightmap: {', '.join(lightmapped)}"] if lightmapped else [])) or \
             "no glossy or lightmapped material: left to the renderer's own lighting"
+        if obj.type not in MODIFIER_TYPES:
+            reason = (f"left to the renderer: an instanced {GEOMETRY_KINDS[obj.type]} has no mesh stand-in (the "
+                      f"{GEOMETRY_KINDS[obj.type]} itself, where it stands in the scene, bakes through one)")
         plans.append(ObjectPlan(name, round(area, 6), int(np.ceil(area * settings.texel_density**2)) if baked else 0,
                                 baked, mat_plans, reason, f"{instanced.how} instance {k + 1} of {instanced.count}, "
-                                f"of '{source}' on '{instancer}'", instancer=instancer, source=source, instance=k))
+                                f"of '{source}' on '{instancer}'" + (", as an object copy" if instanced.copies else ""),
+                                instancer=instancer, source=source, instance=k))
     return plans
 
 
@@ -299,6 +354,9 @@ def _why_no_surface(obj) -> str:
         return "no surface: a curve without bevel, extrusion or a profile renders nothing"
     if obj.type == "FONT":
         return "no surface: text without characters renders nothing"
+    if obj.type == "META":
+        return ("no surface of its own: a metaball's elements render as part of its family's base object (the one "
+                "of the same name without a number suffix)")
     return "no faces with area"
 
 
@@ -435,9 +493,50 @@ def quiet_stdout():
         os.close(saved)
 
 
+# Data types whose surface renders at its own resolution: the settings (each with a render_ twin) to evaluate at.
+_RESOLUTIONS = {"Curve": ("resolution_u",), "TextCurve": ("resolution_u",),
+                "SurfaceCurve": ("resolution_u", "resolution_v"), "MetaBall": ("resolution",)}
+
+
+@contextlib.contextmanager
+def render_evaluation(objects):
+    """Evaluate `objects` as a render does for the block: each modifier shown as for rendering, subdivision at its
+    render levels, every particle and child particle a render makes, and curves, surfaces and metaballs (a
+    stand-in's source too) at their render resolution (the viewport may show less). Every setting comes back
+    afterwards."""
+    saved = []
+    try:
+        for obj in objects:
+            for modifier in getattr(obj, "modifiers", ()):
+                if modifier.show_viewport != modifier.show_render:
+                    saved.append((modifier, "show_viewport", modifier.show_viewport))
+                    modifier.show_viewport = modifier.show_render
+                if modifier.type in ("SUBSURF", "MULTIRES") and modifier.levels != modifier.render_levels:
+                    saved.append((modifier, "levels", modifier.levels))
+                    modifier.levels = modifier.render_levels
+                if modifier.type == "PARTICLE_SYSTEM":  # every particle and child a render makes
+                    particles = modifier.particle_system.settings
+                    for name, value in (("display_percentage", 100), ("child_percent", particles.rendered_child_count)):
+                        if getattr(particles, name) != value:
+                            saved.append((particles, name, getattr(particles, name)))
+                            setattr(particles, name, value)
+            data = obj.parent.data if is_stand_in(obj) and obj.parent is not None else obj.data
+            for name in _RESOLUTIONS.get(type(data).__name__, ()):
+                render_value = getattr(data, f"render_{name}")
+                if render_value and getattr(data, name) != render_value:  # 0: renders use the viewport's
+                    saved.append((data, name, getattr(data, name)))
+                    setattr(data, name, render_value)
+        yield
+    finally:
+        for owner, name, value in reversed(saved):
+            setattr(owner, name, value)
+
+
 def build_plan(scene, settings: BakeSettings) -> BakePlan:
     """Analyse `scene` and decide what to bake. Raises BakeInputError with one clear message."""
-    with active_scene(scene) as depsgraph:
+    with active_scene(scene), render_evaluation([o for o in scene.objects if o.type in GEOMETRY_KINDS]):
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        depsgraph.update()
         return _build_plan(scene, settings, depsgraph)
 
 
@@ -446,13 +545,15 @@ GEOMETRY_KINDS = {"MESH": "mesh", "CURVE": "curve", "FONT": "text", "SURFACE": "
 
 def geometry_description(obj) -> str:
     """What the bake sees of an object: its kind and the modifiers that render, e.g. 'mesh + Bevel, Array'."""
-    modifiers = [m.name for m in user_modifiers(obj) if m.show_render]
+    shown, off = user_modifiers(obj), modifiers_turned_off(obj)  # off: turned off by the instance copies, not the user
+    modifiers = [m.name for m in getattr(obj, "modifiers", ()) if (m in shown and m.show_render) or m.name in off]
     return GEOMETRY_KINDS[obj.type] + (" + " + ", ".join(modifiers) if modifiers else "")
 
 
 def _build_plan(scene, settings: BakeSettings, depsgraph) -> BakePlan:
     settings.validate()
-    visible = [o for o in scene.objects if not o.hide_render]
+    # A stand-in's source and an instance copy's instancer are planned, not what the bake added for them.
+    visible = [o for o in scene.objects if not o.hide_render and not is_stand_in(o) and not is_copy(o)]
     shapes = [o for o in visible if o.type in GEOMETRY_KINDS]
     if not shapes:
         kinds = sorted({o.type.lower() for o in visible})
@@ -471,7 +572,7 @@ def _build_plan(scene, settings: BakeSettings, depsgraph) -> BakePlan:
                 emits[m] = surface is not None and original.node_tree is not None and surface.emissive
         return mats, [analysed[m] for m in mats]
 
-    every_instancer = instances_by_instancer(depsgraph)
+    every_instancer = scene_instancers(scene, depsgraph, settings)
     instances = dict(every_instancer)  # the ones not yet in the plan
     for obj in shapes:
         mats, mat_plans = surfaces_of(obj)
@@ -479,11 +580,6 @@ def _build_plan(scene, settings: BakeSettings, depsgraph) -> BakePlan:
             emissive.append(obj.name)
         geometry = geometry_description(obj)
         instanced = instances.pop(obj.name, None)
-        if obj.type not in MODIFIER_TYPES:
-            objects.append(ObjectPlan(obj.name, round(_world_area(obj, depsgraph), 6), 0, False, mat_plans,
-                                      f"left to the renderer: Blender cannot give a {geometry} the lightmap UV modifier;"
-                                      " Object > Convert > Mesh on a copy bakes it", geometry))
-            continue
         area = _world_area(obj, depsgraph)
         glossy = [mp.name for mp in mat_plans if mp.glossy]
         lightmapped = [mp.name for mp in mat_plans if mp.irradiance_only]
@@ -503,6 +599,10 @@ def _build_plan(scene, settings: BakeSettings, depsgraph) -> BakePlan:
             "; ".join(f"{mp.name}: {mp.reason}" for mp in mat_plans) + ")"
         if instanced is not None:
             reason += f"; {instanced.reason()}"
+        if baked and obj.type in STAND_IN_TYPES:
+            reason += (f"; through a mesh stand-in that follows its surface (a {GEOMETRY_KINDS[obj.type]} takes no "
+                       "modifiers): the stand-in renders in its place, the original is invisible to rays and probes "
+                       "and drawn as wire until Remove SG Bake")
         objects.append(ObjectPlan(obj.name, round(area, 6), texels, baked, mat_plans, reason, geometry))
     for name, instanced in sorted(instances.items()):  # empties instancing collections, and the like
         objects.append(ObjectPlan(name, 0.0, 0, False, [], instanced.reason(), instanced.description()))
@@ -519,8 +619,10 @@ def _build_plan(scene, settings: BakeSettings, depsgraph) -> BakePlan:
             warnings.append(f"'{obj.name}' is baked and also instanced by {', '.join(instancers)}: its instances show "
                             f"the lighting baked where '{obj.name}' itself stands")
     if glossy_instances:
-        warnings.append("instances of glossy objects are not baked (per-instance lightmaps are not built yet): "
-                        + ", ".join(glossy_instances) + "; each keeps the renderer's own lighting")
+        copyable = any(o.how in COPYABLE and not o.copies for o in every_instancer.values())
+        warnings.append("instances of glossy objects are not baked: " + ", ".join(glossy_instances)
+                        + "; each keeps the renderer's own lighting (the plan says why"
+                        + ("; Instances as Copies bakes particle, vertex and face instances" if copyable else "") + ")")
     if not any(o.bake_lightfield for o in objects):
         left = sorted({mp.name for o in objects for mp in o.materials if mp.reason.startswith("left to the renderer")})
         raise BakeInputError("nothing to bake: no object or instance has a glossy material (roughness below "

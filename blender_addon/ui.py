@@ -25,6 +25,7 @@ def draw_sg_lightfield(layout, context):
     col.prop(settings, "lobe_refit_steps")
     col.prop(settings, "irradiance_detail")
     layout.prop(settings, "rough_materials")
+    layout.prop(settings, "instance_copies")
     layout.prop(settings, "device")
     layout.prop(settings, "output_dir")
     layout.operator("sg_lightfield.show_plan", icon="INFO")

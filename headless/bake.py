@@ -36,8 +36,8 @@ def script_args(argv: list[str]) -> list[str]:
 
 SETTINGS_FILE_OPTIONS = ("preset", "texel-density", "lightfield-resolution", "samples", "lightmap-samples", "sg-count",
                          "uniform-sg-count", "training-budget", "lobe-refit-steps", "irradiance-detail",
-                         "rough-materials", "device", "midpoints", "reference-samples", "tile-megapixels",
-                         "external-images", "lightmap-uv")
+                         "rough-materials", "instance-copies", "device", "midpoints", "reference-samples",
+                         "tile-megapixels", "external-images", "lightmap-uv")
 
 
 def _settings_arguments(parser: argparse.ArgumentParser, path: str) -> list[str]:
@@ -94,6 +94,9 @@ def parse_args(args: list[str]) -> argparse.Namespace:
     p.add_argument("--rough-materials", choices=ROUGH_MATERIALS, default="irradiance",
                    help="dielectrics of roughness >= 0.6: an irradiance lightmap from the same light field, or the "
                    "renderer's own lighting")
+    p.add_argument("--instance-copies", action="store_true",
+                   help="bake particle, vertex and face instances as object copies that render in their place until "
+                   "the bake is removed (without it they keep the renderer's own lighting)")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     p.add_argument("--tile", metavar="i/N", help="render only share i of N of the tiles (render farms); "
                    "the shares merge in the bake directory")
@@ -296,7 +299,8 @@ def run(ns, reporter: Reporter) -> int:
         samples=ns.samples, lightmap_samples=ns.lightmap_samples, sg_count=ns.sg_count,
         uniform_sg_count=ns.uniform_sg_count,
         training_budget_s=ns.training_budget_s, lobe_refit_steps=ns.lobe_refit_steps,
-        rough_materials=ns.rough_materials, device=ns.device, irradiance_detail=ns.irradiance_detail)
+        rough_materials=ns.rough_materials, device=ns.device, irradiance_detail=ns.irradiance_detail,
+        instance_copies=ns.instance_copies)
     out = ns.out.expanduser().resolve()
     if out.exists() and not out.is_dir():
         raise BakeInputError(f"{ns.out}: exists and is not a directory")

@@ -36,8 +36,9 @@ writes them to bench_out/bench.json; bench_out/results.md shows the plots first,
             Beside them the textured bake with irradiance detail 1 (diffuse light from the light fields), on the
             same light fields and SGs: the cost and gain of the preset's detail image.
   geometry  demo:geometry (a smooth monkey, a live Bevel + Array + Subdivision stack, extruded text, a bevelled
-            curve) at Draft: per object its geometry, texels, capture seconds and the FLIP of EEVEE with and without
-            the bake, per material.
+            curve, node and collection instances, a metaball, a NURBS surface, particles as object copies) at Draft:
+            per object its geometry, texels, capture seconds and the FLIP of EEVEE with and without the bake, per
+            material; EEVEE's frame time with and without per-instance tiles and with the particles' own instances.
   stability the numerical-stability sweep: `spheres` at roughness 0 and 1, a 1e5 emitter, no light, scale 1e4 and
             1e-3, each baked and evaluated: every output finite, and the errors.
   farm      the Open Job Description template run locally with openjd (one process per task, 3 render tasks) against
@@ -592,8 +593,10 @@ def _materials_detail_row(preset: str, textured_dir: Path, textured_row: dict) -
 
 
 def bench_geometry(out_root: Path, preset="draft") -> list[dict]:
-    """demo:geometry (a smooth monkey, a Bevel + Array + Subdivision stack, extruded text, a bevelled curve) at one
-    preset: per object its geometry, texels and the bake's FLIP in EEVEE with and without it, per material."""
+    """demo:geometry (a smooth monkey, a Bevel + Array + Subdivision stack, extruded text, a bevelled curve, node and
+    collection instances, a metaball, a NURBS surface, particles baked as object copies) at one preset: per object its
+    geometry, texels and the bake's FLIP in EEVEE with and without it, per material; EEVEE's frame time with the
+    instance tiles, without them and with the particle system's own instances in place of the copies."""
     import json
 
     from ..blender_addon.demo_scenes import build_demo_scene
@@ -601,7 +604,7 @@ def bench_geometry(out_root: Path, preset="draft") -> list[dict]:
 
     scene = build_demo_scene("geometry")
     out = out_root / f"geometry_{preset}"
-    job = BakeJob(scene, BakeSettings.from_preset(preset), out)
+    job = BakeJob(scene, BakeSettings.from_preset(preset, instance_copies=True), out)
     job.run()
     errors = json.loads((out / "report.json").read_text())["errors"]
     eevee, alone = errors.get("eevee") or {}, errors.get("eevee_without_bake") or {}
@@ -626,7 +629,9 @@ def bench_geometry(out_root: Path, preset="draft") -> list[dict]:
           f"{rows[-1]['flip']}, EEVEE with the bake {rows[-1]['eevee_flip']}, without {rows[-1]['eevee_without_bake_flip']}")
     rows[-1].update(_instance_tile_cost(scene))
     print(f"geometry {preset}: EEVEE frame at 960 x 540 {rows[-1]['eevee_frame_s_instance_tiles']} s with per-instance "
-          f"tiles, {rows[-1]['eevee_frame_s_object_tiles']} s with the instances reading their object's tile")
+          f"tiles, {rows[-1]['eevee_frame_s_object_tiles']} s with the instances reading their object's tile"
+          + (f", {rows[-1]['eevee_frame_s_original_instances']} s with the particle system's own instances in place of "
+             "the copies" if "eevee_frame_s_original_instances" in rows[-1] else ""))
     _discard_scene(scene)
     return rows
 
@@ -638,7 +643,7 @@ def _instance_tile_cost(scene, frames=3) -> dict:
 
     import bpy
 
-    from ..blender_addon import lightmap_modifier
+    from ..blender_addon import lightmap_modifier, stand_ins
     from ..blender_addon.scene_analysis import active_scene, quiet_stdout
 
     scene.render.engine = "BLENDER_EEVEE_NEXT" if bpy.app.version < (5, 0, 0) else "BLENDER_EEVEE"
@@ -660,8 +665,14 @@ def _instance_tile_cost(scene, frames=3) -> dict:
     without = frame_s()
     for obj, tiles in saved.items():
         lightmap_modifier.swap_instance_tiles(obj, tiles)
-    return {"eevee_frame_s_instance_tiles": with_tiles, "eevee_frame_s_object_tiles": without,
+    cost = {"eevee_frame_s_instance_tiles": with_tiles, "eevee_frame_s_object_tiles": without,
             "instancers": sorted(o.name for o in saved)}
+    copied = sorted(o.name for o in scene.objects if stand_ins.copied(o))
+    if copied:  # the particles as object copies (baked) against the particle system's own instances (unbaked)
+        with stand_ins.original_instancing(scene):
+            cost["eevee_frame_s_original_instances"] = frame_s()
+        cost["copied_instancers"] = copied
+    return cost
 
 
 def _discard_scene(scene):

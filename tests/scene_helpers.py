@@ -106,8 +106,11 @@ def mesh_fingerprint(mesh) -> str:
 
 def object_fingerprint(obj) -> str:
     """Hash of what a user owns in an object: its modifiers (type, order and every setting), custom properties,
-    material slots and its data (mesh_fingerprint for meshes; curve and text settings otherwise)."""
+    material slots, visibility, display and children, and its data (mesh_fingerprint for meshes; curve, surface,
+    text and metaball settings otherwise)."""
     h = hashlib.sha256()
+    h.update(repr((obj.hide_render, obj.hide_viewport, obj.hide_select, obj.display_type,
+                   sorted(child.name for child in obj.children))).encode())
     for modifier in obj.modifiers:
         settings = {p.identifier: getattr(modifier, p.identifier) for p in modifier.bl_rna.properties
                     if not p.is_readonly and p.type in {"BOOLEAN", "INT", "FLOAT", "STRING", "ENUM"}}

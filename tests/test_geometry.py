@@ -1,8 +1,9 @@
-"""Real geometry (bpy as a module): modifier stacks stay live, text and curves bake as their evaluated meshes, small
-objects and every instance get texels of their own, and what is not baked (instances of node-made geometry,
-particles, metaballs, NURBS surfaces) is named with a reason."""
+"""Real geometry (bpy as a module): modifier stacks stay live, text and curves bake as their evaluated meshes,
+metaballs and NURBS surfaces through mesh stand-ins, small objects and every instance get texels of their own, and
+what is not baked (instances of node-made geometry, particles) is named with a reason."""
 import json
 import math
+import re
 
 import bpy  # noqa: I001  (bmesh exists only once bpy is imported)
 import bmesh
@@ -12,7 +13,7 @@ import pytest
 from sg_lightfield.blender_addon import lightmap_modifier
 from sg_lightfield.blender_addon.apply import remove_bake
 from sg_lightfield.blender_addon.capture import LIGHTMAP_LAYER, capture, remove_lightmap_uvs
-from sg_lightfield.blender_addon.demo_scenes import bevel_array_subdivision, instance_on_grid
+from sg_lightfield.blender_addon.demo_scenes import bevel_array_subdivision, instance_on_grid, nurbs_sphere
 from sg_lightfield.blender_addon.scene_analysis import active_scene, build_plan, loop_triangle_arrays
 from sg_lightfield.headless.bake import stage_summary
 from sg_lightfield.bake_directory.bake_plan import BakeInputError, BakeSettings
@@ -235,8 +236,8 @@ def test_every_instance_gets_texels_of_its_own_and_its_shading_finds_them(tmp_pa
 
 
 def _unsupported_scene():
-    """Instances of node-made geometry, particle instances, a metaball, a NURBS surface and a curve with no bevel
-    beside a floor."""
+    """Instances of node-made geometry, particle instances and a curve with no bevel beside a floor; a metaball and a
+    NURBS surface, which bake through stand-ins."""
     chrome = material("chrome", 0.1, metallic=1.0)
     floor = mesh_object("Floor", cube(4.0), material("tiles", 0.3))
     floor.scale.z = 0.01
@@ -263,8 +264,7 @@ def _unsupported_scene():
     particles = emitter.particle_systems[0].settings
     particles.count, particles.render_type, particles.instance_object = 20, "OBJECT", pebble
     particles.frame_start = particles.frame_end = 1  # all born on the first frame
-    with bpy.context.temp_override(scene=scene, view_layer=scene.view_layers[0], collection=scene.collection):
-        bpy.ops.surface.primitive_nurbs_surface_sphere_add(radius=0.4, location=(1.5, 1.5, 0.5))
+    nurbs_sphere(scene, "Dome", 0.4, (1.5, 1.5, 0.5)).data.materials.append(chrome)
     return scene
 
 
@@ -278,17 +278,19 @@ def test_what_cannot_be_baked_is_named_with_its_reason():
     assert "left to the renderer" in nodes.reason and "made inside the node tree" in nodes.reason
     emitter = by_name["Emitter"]
     assert "20 particle instances of Pebble" in emitter.geometry and "left to the renderer" in emitter.reason
-    assert "cannot give a metaball the lightmap UV modifier" in by_name["Blob"].reason
+    for blob_or_nurbs in (by_name["Blob"], next(o for o in plan.objects if scene.objects[o.name].type == "SURFACE")):
+        assert blob_or_nurbs.bake_lightfield and blob_or_nurbs.texels > 0, blob_or_nurbs
+        assert "through a mesh stand-in" in blob_or_nurbs.reason
     assert "no surface: a curve without bevel" in by_name["Wire"].reason
-    nurbs = next(o for o in plan.objects if scene.objects[o.name].type == "SURFACE")
-    assert "NURBS surface" in nurbs.reason
     assert any("instances of glossy objects are not baked" in w and "Pebble" in w for w in plan.warnings)
     assert "Emitter" not in {base_name(o.name) for o in plan.baked_objects}  # no material: left alone
     assert not any(o.instancer for o in plan.objects)
     decisions = "\n".join(plan.decisions())
     for name in ("Node Spheres", "Emitter", "Blob", "Wire"):
         assert any(line.startswith(name) for line in decisions.splitlines()), name
-    next(o for o in scene.objects if base_name(o.name) == "Floor").material_slots[0].material = material("matte", 0.9)
+    matte = material("matte", 0.9)
+    for name in ("Floor", "Blob", "Dome"):
+        next(o for o in scene.objects if base_name(o.name) == name).material_slots[0].material = matte
     with pytest.raises(BakeInputError, match="instances of glossy objects are not baked.*Pebble"):
         build_plan(scene, BakeSettings.from_preset("draft", rough_materials="renderer"))
 
@@ -301,9 +303,10 @@ def test_a_bake_without_glossy_materials_says_so_instead_of_a_loss():
 
 @pytest.mark.slow
 def test_the_geometry_demo_bakes_every_class_and_remove_restores_every_object(tmp_path):
-    """demo:geometry end to end at small settings: the monkey, the modifier stack, the text and the curve are each in
-    the plan with texels, the bake finishes, EEVEE's FLIP per material is finite and in the report, and Remove SG
-    Bake leaves every object (modifiers, mesh, UV layers, slots) and the file's datablocks as they were."""
+    """demo:geometry end to end at small settings: the monkey, the modifier stack, the text, the curve, the metaball,
+    the NURBS surface and the particles (as object copies) are each in the plan with texels, the bake finishes,
+    EEVEE's FLIP per material is finite and in the report, and Remove SG Bake leaves every object (modifiers, mesh,
+    UV layers, slots, visibility) and the file's datablocks as they were."""
     from sg_lightfield.blender_addon.demo_scenes import build_demo_scene
     from sg_lightfield.blender_addon.evaluate import evaluate_stage
     from sg_lightfield.blender_addon.pipeline import BakeJob
@@ -311,26 +314,33 @@ def test_the_geometry_demo_bakes_every_class_and_remove_restores_every_object(tm
     scene = build_demo_scene("geometry")
     owners = [*scene.objects, *(o for o in bpy.data.objects if base_name(o.name) in ("Cup", "Saucer"))]
     before = {o.name: object_fingerprint(o) for o in owners}
-    datablocks = {kind: set(getattr(bpy.data, kind).keys()) for kind in ("objects", "meshes", "node_groups")}
+    datablocks = {kind: set(getattr(bpy.data, kind).keys()) for kind in ("objects", "meshes", "node_groups",
+                                                                          "collections")}
     settings = BakeSettings.from_preset("draft", lightfield_resolution=8, samples=8, sg_count=4, training_budget_s=4.0,
-                                        lobe_refit_steps=20)
+                                        lobe_refit_steps=20, instance_copies=True)
     job = BakeJob(scene, settings, tmp_path, stages=("capture", "render", "train", "apply"))
-    by_name = {base_name(o.name): o for o in job.plan.objects}
+
+    def plain(name):  # earlier tests' objects of the same names give these numeric suffixes
+        return re.sub(r"\.\d{3}", "", name)
+    by_name = {plain(o.name): o for o in job.plan.objects}
     expected = {"Suzanne": "mesh", "Bar": "mesh + Bevel, Array, Subdivision", "Text": "text", "Pipe": "curve",
-                "Marble Grid: Marble #1": "geometry nodes instance 1 of 6, of 'Marble' on 'Marble Grid'"}
+                "Marble Grid: Marble #1": "geometry nodes instance 1 of 6, of 'Marble' on 'Marble Grid'",
+                "Blob": "metaball", "Dome": "NURBS surface",
+                "Pebble Scatter: Pebble #1": "particle instance 1 of 12, of 'Pebble' on 'Pebble Scatter', as an object "
+                                             "copy"}
     cups = [o for o in job.plan.objects if base_name(o.instancer).startswith("Cup Instance")]
     assert sorted(base_name(o.source) for o in cups) == ["Cup", "Cup", "Saucer", "Saucer"]
     assert all(o.bake_lightfield and o.texels > 0 for o in cups)
     for name, geometry in expected.items():
-        assert by_name[name].bake_lightfield and by_name[name].texels > 0 and by_name[name].geometry == geometry
+        assert by_name[name].bake_lightfield and by_name[name].texels > 0 and plain(by_name[name].geometry) == geometry
     job.run()
-    tiles = {base_name(o["name"]): o["texels"] for o in job.results["capture"].objects}
+    tiles = {plain(o["name"]): o["texels"] for o in job.results["capture"].objects}
     assert all(tiles[name] > 0 for name in expected), tiles
     errors = evaluate_stage(scene, job.plan, tmp_path, views=1, resolution=(96, 54), reference_samples=16)
     eevee = errors["eevee"]
     assert "error" not in eevee and math.isfinite(errors["flip"]) and 0 < eevee["flip"] < 1
     flips = {base_name(k): v["flip"] for k, v in eevee["flip_by_material"].items()}
-    for name in ("Red Plastic", "Steel", "Gold", "Copper", "Chrome", "Blue Glaze"):
+    for name in ("Red Plastic", "Steel", "Gold", "Copper", "Chrome", "Blue Glaze", "Pearl", "Brass", "Obsidian"):
         assert math.isfinite(flips[name]) and 0 <= flips[name] < 1, flips
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["errors"]["eevee"]["flip"] == eevee["flip"]
@@ -439,3 +449,135 @@ def test_cancelling_a_rebake_puts_back_the_carriers_and_instance_tiles(tmp_path)
     assert _lightmap_state(scene) == captured
     remove_lightmap_uvs(scene)
     assert not any(lightmap_modifier.lightmap_modifier(o) for o in scene.objects)
+
+
+def test_a_metaball_and_a_nurbs_surface_bake_through_live_stand_ins_that_remove_takes_away(tmp_path):
+    """The capture gives a metaball and a NURBS surface each a mesh stand-in whose surface is theirs (area within
+    2 %), with texels of its own, the source's materials in object-linked slots and the source hidden in renders and
+    drawn as wire; moving an element moves the stand-in's surface (it stays live); Remove SG Bake deletes the
+    stand-ins and gives each source its own settings back."""
+    from sg_lightfield.blender_addon import stand_ins
+    from sg_lightfield.blender_addon.scene_analysis import _world_area
+
+    pearl, brass = material("pearl", 0.2), material("brass", 0.3, metallic=1.0)
+    floor = mesh_object("Floor", cube(4.0), material("tiles", 0.3))
+    floor.scale.z = 0.01
+    blob = bpy.data.objects.new("Blob", bpy.data.metaballs.new("Blob"))
+    for co in ((0.0, 0.0, 0.5), (0.4, 0.0, 0.5)):
+        element = blob.data.elements.new()
+        element.co, element.radius = co, 0.4
+    blob.data.materials.append(pearl)
+    blob.data.resolution = 0.1  # the viewport's polygons too (the test reads the viewport's evaluation)
+    scene = scene_with(floor, blob, name="stand-in test")
+    dome = nurbs_sphere(scene, "Dome", 0.4, (1.5, 1.0, 0.5))
+    dome.data.materials.append(brass)
+    owners = (floor, blob, dome)
+    before = {o.name: object_fingerprint(o) for o in owners}
+    plan = build_plan(scene, BakeSettings.from_preset("draft", texel_density=16.0))
+    with active_scene(scene) as depsgraph:
+        source_areas = {o.name: _world_area(o, depsgraph) for o in (blob, dome)}
+    assert min(source_areas.values()) > 1.0, source_areas
+    result = capture(scene, plan, tmp_path)
+    atlas, info = read_texel_maps(tmp_path)
+    for source, mat in ((blob, pearl), (dome, brass)):
+        stand_in = stand_ins.stand_in_of(source)
+        assert stand_in is not None and stand_in.type == "MESH" and stand_in.name in scene.objects
+        assert not source.visible_camera and not source.visible_shadow and source.display_type == "WIRE"
+        assert [(s.link, s.material) for s in stand_in.material_slots] == [("OBJECT", mat)]
+        with active_scene(scene) as depsgraph:
+            assert _world_area(stand_in, depsgraph) == pytest.approx(source_areas[source.name], rel=0.02)
+        assert _texels_of(atlas, info, base_name(source.name)).sum() > 20
+        assert next(o for o in result.objects if o["name"] == source.name)["texels"] > 20
+    with active_scene(scene) as depsgraph:
+        depsgraph.update()
+        centre = np.mean(_evaluated_uv(stand_ins.stand_in_of(blob))[1].reshape(-1, 3), axis=0)
+        blob.data.elements[1].co.x = 0.8  # the user edits the metaball: its stand-in follows
+        depsgraph.update()
+        moved = np.mean(_evaluated_uv(stand_ins.stand_in_of(blob))[1].reshape(-1, 3), axis=0)
+    assert moved[0] - centre[0] > 0.1, (centre, moved)
+    blob.data.elements[1].co.x = 0.4
+    remove_bake(scene)
+    assert not any(stand_ins.is_stand_in(o) for o in bpy.data.objects)
+    assert not any(g.get(stand_ins.GROUP_KEY) for g in bpy.data.node_groups)
+    assert {o.name: object_fingerprint(o) for o in owners} == before
+
+    from sg_lightfield.blender_addon.pipeline import BakeJob  # a bake cancelled after its capture: the same
+
+    job = BakeJob(scene, BakeSettings.from_preset("draft", texel_density=16.0), tmp_path / "cancelled",
+                  stages=("capture", "render"))
+    while job.step()[0] == "capture":
+        pass
+    assert stand_ins.stand_in_of(blob) is not None
+    job.cancel()
+    assert not any(stand_ins.is_stand_in(o) for o in bpy.data.objects)
+    assert {o.name: object_fingerprint(o) for o in owners} == before
+
+
+def _copies_scene():
+    """A floor; 20 glossy pebbles scattered by a particle system on a hidden emitter; a glossy stud on each of a
+    holder mesh's 8 vertices (vertex instancing)."""
+    chrome, brass = material("chrome", 0.1, metallic=1.0), material("brass", 0.3, metallic=1.0)
+    floor = mesh_object("Floor", cube(4.0), material("tiles", 0.3))
+    floor.scale.z = 0.01
+    pebble = mesh_object("Pebble", uv_sphere(0.08), chrome)
+    pebble.hide_render = True
+    emitter = mesh_object("Emitter", cube(1.0))
+    emitter.location = (0.0, 0.0, 1.0)
+    emitter.show_instancer_for_render = False
+    holder = mesh_object("Holder", cube(0.6))
+    holder.location = (1.5, 1.5, 0.6)
+    stud = mesh_object("Stud", cube(0.08), brass)
+    stud.parent = holder
+    holder.instance_type = "VERTS"
+    scene = scene_with(floor, pebble, emitter, holder, stud, name="copies test")
+    emitter.modifiers.new("Pebbles", "PARTICLE_SYSTEM")
+    particles = emitter.particle_systems[0].settings
+    particles.count, particles.render_type, particles.instance_object = 20, "OBJECT", pebble
+    particles.frame_start = particles.frame_end = 1
+    particles.physics_type, particles.display_percentage = "NO", 50  # the viewport shows half of them
+    particles.particle_size = 1.0
+    return scene
+
+
+def test_particle_and_vertex_instances_bake_as_object_copies_that_remove_takes_away(tmp_path):
+    """Without Instances as Copies the plan names particle and vertex instances as left to the renderer and says
+    what bakes them; with it, each of the 20 particles (all of them, though the viewport shows half) and 8 vertex
+    instances is a plan entry with texels, the capture replaces them by object copies with tiles of their own, a plan
+    made after the capture is the same plan, and Remove SG Bake gives the instancers back their settings."""
+    from sg_lightfield.blender_addon import stand_ins
+    from sg_lightfield.blender_addon.capture import OFFSET_KEY
+
+    scene = _copies_scene()
+    by_base = {base_name(o.name): o for o in scene.objects}
+    owners = [by_base[n] for n in ("Floor", "Pebble", "Emitter", "Holder", "Stud")]
+    before = {o.name: object_fingerprint(o) for o in owners}
+    particles = by_base["Emitter"].particle_systems[0].settings
+    left = build_plan(scene, DRAFT)
+    emitter_line = next(o for o in left.objects if base_name(o.name) == "Emitter")
+    assert "left to the renderer" in emitter_line.reason and "Instances as Copies" in emitter_line.reason
+    assert not any(o.instancer for o in left.objects)
+    settings = BakeSettings.from_preset("draft", texel_density=16.0, instance_copies=True)
+    plan = build_plan(scene, settings)
+    pebbles = [o for o in plan.baked_objects if base_name(o.instancer) == "Emitter"]
+    studs = [o for o in plan.baked_objects if base_name(o.instancer) == "Holder"]
+    assert len(pebbles) == 20 and len(studs) == 8
+    assert all(o.texels > 0 and o.geometry.endswith("as an object copy") for o in pebbles + studs)
+    assert particles.display_percentage == 50
+    result = capture(scene, plan, tmp_path)
+    copies = {o["name"]: o["texels"] for o in result.objects if o["name"] in {p.name for p in pebbles + studs}}
+    assert len(copies) == 28 and min(copies.values()) > 0, copies
+    for instancer, count in (("Emitter", 20), ("Holder", 8)):
+        made = stand_ins.copies_of(by_base[instancer])
+        assert len(made) == count and len({tuple(c[OFFSET_KEY]) for c in made}) == count  # a tile each
+        assert all(c.data == made[0].data for c in made)  # linked duplicates of the instanced object
+    assert not by_base["Emitter"].modifiers["Pebbles"].show_render and by_base["Holder"].instance_type == "NONE"
+    with active_scene(scene) as depsgraph:
+        depsgraph.update()
+        assert not any(i.is_instance and i.parent and i.parent.original.name in ("Emitter", "Holder")
+                       for i in depsgraph.object_instances)  # the copies render instead
+    assert build_plan(scene, settings).content_hash() == plan.content_hash()
+    remove_bake(scene)
+    assert not any(stand_ins.is_copy(o) for o in bpy.data.objects)
+    assert not any(c.get(stand_ins.COPIES_OF_KEY) for c in bpy.data.collections)
+    assert {o.name: object_fingerprint(o) for o in owners} == before
+    assert particles.display_percentage == 50

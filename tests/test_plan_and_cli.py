@@ -226,6 +226,28 @@ def test_cli_production_plan_gives_16_sgs_everywhere_and_the_floor_its_lightmap_
     assert "Glossy (roughness 0.4) 8, Glossy (roughness 0.5) 8" in lines["rule"][0]
 
 
+def test_cli_instance_copies_puts_each_particle_of_the_geometry_demo_in_the_plan(tmp_path):
+    """demo:geometry's 12 particle-scattered pebbles: left to the renderer with what would bake them by default, one
+    plan entry each with --instance-copies (also from a --settings file); the metaball and the NURBS surface bake
+    through stand-ins either way."""
+    plans = {}
+    settings_file = tmp_path / "settings.json"
+    settings_file.write_text(json.dumps({"instance-copies": True}))
+    for key, extra in (("default", []), ("copies", ["--instance-copies"]), ("file", ["--settings", str(settings_file)])):
+        out = _bake("--scene", "demo:geometry", "--out", str(tmp_path / key), "--plan-only", *extra)
+        assert out.returncode == 0, out.stderr
+        plans[key] = json.loads((tmp_path / key / "plan.json").read_text())
+    by_name = {o["name"]: o for o in plans["default"]["objects"]}
+    assert "left to the renderer" in by_name["Pebble Scatter"]["reason"]
+    assert "Instances as Copies" in by_name["Pebble Scatter"]["reason"]
+    assert all(by_name[n]["bake_lightfield"] and "mesh stand-in" in by_name[n]["reason"] for n in ("Blob", "Dome"))
+    for key in ("copies", "file"):
+        pebbles = [o for o in plans[key]["objects"] if o["instancer"] == "Pebble Scatter"]
+        assert len(pebbles) == 12 and all(o["bake_lightfield"] and o["texels"] > 0 for o in pebbles)
+        assert plans[key]["settings"]["instance_copies"] is True
+    assert plans["copies"]["hash"] == plans["file"]["hash"] != plans["default"]["hash"]
+
+
 @pytest.mark.parametrize("args, message", [
     (["--blend", "/nonexistent/scene.blend"], "scene.blend: .blend file not found"),
     (["--scene", "demo:nope"], "unknown demo scene"),

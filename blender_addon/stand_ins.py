@@ -1,0 +1,245 @@
+"""What the bake adds to render in place of what it cannot give a lightmap: mesh stand-ins for metaballs and NURBS
+surfaces, object copies for particle, vertex and face instances (DESIGN section 10).
+
+The lightmap UV lives on the evaluated surface, written by a last Geometry Nodes modifier (lightmap_modifier);
+Blender gives metaballs and NURBS surfaces no modifiers at all. The capture therefore gives each baked one a
+*stand-in*: a mesh object named ``SG Lightfield stand-in: NAME``, parented to it with no offset, whose own Geometry
+Nodes modifier reads the source's evaluated surface through Object Info (Relative). The stand-in stays live: move
+the source, edit its elements or control points, and the stand-in follows; only the lighting waits for a new bake.
+Its material slots are linked to the object and hold the source's materials, so the bake switches them without
+touching the source's data. The source stays in the render but invisible to every ray and probe (a metaball hidden
+in renders is not polygonised there, so its stand-in would be empty: verified in bpy 5.0.1) and is drawn as wire in
+the viewport, so renders and the rendered viewport show the stand-in, not both. Its own settings are kept on it and
+put back by Remove SG Bake, which deletes the stand-in with its mesh.
+
+Particle, vertex and face instances carry no attribute a material can find its tile by (Particle Info is Cycles
+only). Where the settings ask for it (``instance_copies``), the capture gives each such instance an *object copy*:
+a linked duplicate of the instanced object (its data shared) at the instance's world matrix, in a collection
+``SG Lightfield copies: INSTANCER``, which gets its tile as any object does. The instancer stops instancing (its
+particle-system modifiers that render objects are turned off in renders and the viewport; vertex or face instancing
+is set to none), so the copies render instead; the copies are a snapshot of the instances at capture time. Remove SG
+Bake deletes the copies and puts the instancer's settings back.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+
+import bpy
+from mathutils import Matrix
+
+from .lightmap_modifier import lightmap_modifier
+
+STAND_IN_TYPES = {"SURFACE", "META"}  # object types Blender gives no modifiers
+STAND_IN_PREFIX = "SG Lightfield stand-in: "
+SOURCE_KEY = "sglf_stand_in_of"  # on a stand-in: its source object's name
+SOURCE_STATE_KEY = "sglf_stand_in_state"  # on a source: its own settings of SOURCE_HIDDEN, as JSON
+# What makes a source invisible in renders while it stays evaluated there (its stand-in reads its surface).
+SOURCE_HIDDEN = {"visible_camera": False, "visible_diffuse": False, "visible_glossy": False,
+                 "visible_transmission": False, "visible_volume_scatter": False, "visible_shadow": False,
+                 "hide_probe_volume": True, "hide_probe_sphere": True, "hide_probe_plane": True, "display_type": "WIRE"}
+GROUP_KEY = "sglf_stand_in_group"  # on the stand-ins' shared Geometry Nodes group
+GROUP_NAME = "SG Lightfield stand-in"
+SOURCE_INPUT = "Source"
+
+
+def is_stand_in(obj) -> bool:
+    return SOURCE_KEY in obj
+
+
+def has_stand_in(obj) -> bool:
+    """A source the bake hid behind a stand-in (it renders through the stand-in)."""
+    return SOURCE_STATE_KEY in obj
+
+
+def stand_in_of(source):
+    """The stand-in of `source`, or None."""
+    return next((child for child in source.children if SOURCE_KEY in child), None)
+
+
+def _group():
+    existing = next((g for g in bpy.data.node_groups if g.get(GROUP_KEY) and g.bl_idname == "GeometryNodeTree"), None)
+    if existing is not None:
+        return existing
+    tree = bpy.data.node_groups.new(GROUP_NAME, "GeometryNodeTree")
+    tree[GROUP_KEY] = True
+    tree.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    tree.interface.new_socket(SOURCE_INPUT, in_out="INPUT", socket_type="NodeSocketObject")
+    tree.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    group_in = tree.nodes.new("NodeGroupInput")
+    source = tree.nodes.new("GeometryNodeObjectInfo")
+    source.transform_space = "RELATIVE"
+    tree.links.new(group_in.outputs[SOURCE_INPUT], source.inputs["Object"])
+    tree.links.new(source.outputs["Geometry"], tree.nodes.new("NodeGroupOutput").inputs["Geometry"])
+    return tree
+
+
+def ensure_stand_in(source):
+    """The stand-in of `source`, made (and the source hidden behind it) where it has none yet."""
+    stand_in = stand_in_of(source)
+    if stand_in is not None:
+        return stand_in
+    name = f"{STAND_IN_PREFIX}{source.name}"
+    stand_in = bpy.data.objects.new(name, bpy.data.meshes.new(name))
+    stand_in[SOURCE_KEY] = source.name
+    for collection in source.users_collection:
+        collection.objects.link(stand_in)
+    stand_in.parent = source  # the source's world matrix, with no offset: Relative geometry lands where it renders
+    stand_in.matrix_parent_inverse.identity()
+    stand_in.hide_select = True  # clicks select the source, which the user edits
+    for slot in source.material_slots:
+        stand_in.data.materials.append(None)
+        own = stand_in.material_slots[-1]
+        own.link = "OBJECT"
+        own.material = slot.material
+    modifier = stand_in.modifiers.new(GROUP_NAME, "NODES")
+    modifier.node_group = _group()
+    identifier = next(i.identifier for i in modifier.node_group.interface.items_tree
+                      if i.item_type == "SOCKET" and i.in_out == "INPUT" and i.name == SOURCE_INPUT)
+    modifier[identifier] = source
+    modifier.node_group = modifier.node_group  # an ID input set as a property needs an RNA update for the depsgraph
+    source[SOURCE_STATE_KEY] = json.dumps({name: getattr(source, name) for name in SOURCE_HIDDEN})
+    for name, value in SOURCE_HIDDEN.items():
+        setattr(source, name, value)
+    return stand_in
+
+
+COPYABLE = ("particle", "vertex", "face")  # instances that carry no attribute of their own
+COPIES_PREFIX = "SG Lightfield copies: "
+COPIES_OF_KEY = "sglf_copies_of"  # on a collection of copies: its instancer's name
+INSTANCE_COPY_KEY = "sglf_instance_copy"  # on a copy: {"source": object name, "index": among the instancer's instances}
+INSTANCER_STATE_KEY = "sglf_instance_copies"  # on an instancer whose instances were copied: its own settings, JSON
+OWN_KEYS_PREFIX = "sglf_"  # the bake's properties, which a copy must not inherit from its source
+
+
+def is_copy(obj) -> bool:
+    return INSTANCE_COPY_KEY in obj
+
+
+def copied(instancer) -> bool:
+    """An instancer whose instances the bake replaced by object copies."""
+    return INSTANCER_STATE_KEY in instancer
+
+
+def modifiers_turned_off(instancer) -> set:
+    """The names of the particle-system modifiers the copies turned off (they render in the user's setup)."""
+    if not copied(instancer):
+        return set()
+    return set(json.loads(instancer[INSTANCER_STATE_KEY])) - {"how", "instance_type", "hide_render"}
+
+
+def _copies_collection(instancer):
+    return next((c for c in bpy.data.collections if c.get(COPIES_OF_KEY) == instancer.name), None)
+
+
+def copies_of(instancer) -> list:
+    """The copies of an instancer's instances, in the instancer's order; [] where it has none."""
+    collection = _copies_collection(instancer)
+    copies = [o for o in collection.objects if is_copy(o)] if collection is not None else []
+    return sorted(copies, key=lambda o: int(o[INSTANCE_COPY_KEY]["index"]))
+
+
+def copy_instances(scene, instancer, how, entries, names) -> list:
+    """Replace `instancer`'s instances (`how` one of COPYABLE; `entries`: (source object name, world matrix) each, in
+    its order; `names`: the plan's name of each) by object copies; returns them."""
+    collection = bpy.data.collections.new(f"{COPIES_PREFIX}{instancer.name}")
+    collection[COPIES_OF_KEY] = instancer.name
+    scene.collection.children.link(collection)
+    copies = []
+    for k, ((source, matrix), name) in enumerate(zip(entries, names)):
+        copy = bpy.data.objects[source].copy()  # a linked duplicate: the source's data, modifiers and slots
+        for key in [key for key in copy.keys() if key.startswith(OWN_KEYS_PREFIX)]:
+            del copy[key]
+        for modifier in [m for m in copy.modifiers if m.type == "PARTICLE_SYSTEM" or m == lightmap_modifier(copy)]:
+            copy.modifiers.remove(modifier)  # no second generation of particles; the source's lightmap modifier
+        copy.name = name
+        copy[INSTANCE_COPY_KEY] = {"source": source, "index": k}
+        copy.parent = None
+        copy.matrix_world = Matrix(matrix)
+        copy.hide_render = copy.hide_viewport = False
+        copy.hide_select = True  # clicks select the instancer, which the user edits
+        collection.objects.link(copy)
+        copies.append(copy)
+    state = {"how": how}
+    if how == "particle":
+        for modifier in instancer.modifiers:
+            if modifier.type == "PARTICLE_SYSTEM" and \
+                    modifier.particle_system.settings.render_type in ("OBJECT", "COLLECTION"):
+                state[modifier.name] = [modifier.show_render, modifier.show_viewport]
+                modifier.show_render = modifier.show_viewport = False
+    else:
+        state.update(instance_type=instancer.instance_type, hide_render=instancer.hide_render)
+        if not instancer.show_instancer_for_render:
+            instancer.hide_render = True  # no longer an instancer: it would render its own mesh
+        instancer.instance_type = "NONE"
+    instancer[INSTANCER_STATE_KEY] = json.dumps(state)
+    return copies
+
+
+@contextlib.contextmanager
+def original_instancing(scene):
+    """For the block: every copied instancer of `scene` instances again as the user set it up and its copies are
+    hidden in renders (the bench's frame time of the instances against the copies)."""
+    changed = []
+    try:
+        for instancer in [o for o in scene.objects if copied(o)]:
+            state = json.loads(instancer[INSTANCER_STATE_KEY])
+            for copy in copies_of(instancer):
+                changed.append((copy, "hide_render", copy.hide_render))
+                copy.hide_render = True
+            if state.pop("how") == "particle":
+                for name, (show_render, _) in state.items():
+                    modifier = instancer.modifiers[name]
+                    changed.append((modifier, "show_render", modifier.show_render))
+                    modifier.show_render = show_render
+            else:
+                for name in ("instance_type", "hide_render"):
+                    changed.append((instancer, name, getattr(instancer, name)))
+                    setattr(instancer, name, state[name])
+        yield
+    finally:
+        for owner, name, value in reversed(changed):
+            setattr(owner, name, value)
+
+
+def _uncopy(instancer) -> None:
+    collection = _copies_collection(instancer)
+    if collection is not None:
+        for copy in list(collection.objects):
+            bpy.data.objects.remove(copy)  # its data is the source's: it stays
+        bpy.data.collections.remove(collection)
+    state = json.loads(instancer[INSTANCER_STATE_KEY])
+    if state.pop("how") == "particle":
+        for name, (show_render, show_viewport) in state.items():
+            modifier = instancer.modifiers.get(name)
+            if modifier is not None:
+                modifier.show_render, modifier.show_viewport = show_render, show_viewport
+    else:
+        instancer.instance_type, instancer.hide_render = state["instance_type"], state["hide_render"]
+    del instancer[INSTANCER_STATE_KEY]
+
+
+def remove_stand_ins(scene, keep=()) -> int:
+    """Delete the stand-ins and instance copies of `scene`'s objects (but the stand-ins and instancers named in
+    `keep`) and give their sources and instancers back their own settings; returns how many stand-ins and copies
+    went. The stand-ins' shared node group goes with the last."""
+    removed = 0
+    for instancer in [o for o in scene.objects if copied(o) and o.name not in keep]:
+        removed += len(copies_of(instancer))
+        _uncopy(instancer)
+    for source in [o for o in scene.objects if has_stand_in(o)]:
+        stand_in = stand_in_of(source)
+        if stand_in is not None and stand_in.name in keep:
+            continue
+        if stand_in is not None:
+            mesh = stand_in.data
+            bpy.data.objects.remove(stand_in)
+            if mesh.users == 0:
+                bpy.data.meshes.remove(mesh)
+            removed += 1
+        for name, value in json.loads(source[SOURCE_STATE_KEY]).items():
+            setattr(source, name, value)
+        del source[SOURCE_STATE_KEY]
+    for group in [g for g in bpy.data.node_groups if g.get(GROUP_KEY) and g.users == 0]:
+        bpy.data.node_groups.remove(group)
+    return removed
