@@ -50,7 +50,7 @@ from .scene_analysis import (active_scene, bake_targets, instance_targets, insta
 from . import lightmap_modifier
 from .lightmap_modifier import user_modifiers
 from .irradiance_detail import DETAIL_FILE, bake_irradiance_detail, filled
-from .stand_ins import (COPYABLE, STAND_IN_TYPES, copied, copy_instances, ensure_stand_in, has_stand_in,
+from .stand_ins import (STAND_IN_TYPES, copied, copy_instances, ensure_stand_in, has_stand_in,
                         remove_stand_ins)
 from .surface_probe import measure_surfaces
 
@@ -601,8 +601,8 @@ def _add_stand_ins(scene, plan) -> None:
         found = instances_by_instancer(depsgraph)
     for instancer in instancers:
         instanced = found.get(instancer.name)
-        if instanced is not None and instanced.how in COPYABLE:
-            copy_instances(scene, instancer, instanced.how, instanced.entries,
+        if instanced is not None and instanced.copyable:
+            copy_instances(scene, instancer, instanced.how, instanced.nested, instanced.entries,
                            instance_targets(instancer.name, instanced))
 
 

@@ -40,7 +40,7 @@ from .apply import BAKE_RECORD_KEY, baked_slots
 from ..bake_directory.exr_io import read_exr
 from .render import compute_device, quiet_stdout, render_still
 from .capture import lightmap_owners
-from .scene_analysis import active_scene, bake_targets, empty_node_material, principled_surface
+from .scene_analysis import active_scene, bake_targets, empty_node_material, principled_surface, unbaked
 from .surface_probe import probe_material
 from .surface_shaders import BAKED_BSDFS, leaves
 
@@ -121,7 +121,9 @@ def surface_images(scene, camera, path) -> tuple[np.ndarray, np.ndarray, list[st
         for obj in lightmap_owners(scene):  # the scene's objects and those its instances show
             for index, slot in enumerate(getattr(obj, "material_slots", [])):
                 original_name = record.get(obj.name, {}).get(str(index))
-                original = bpy.data.materials.get(original_name) if original_name else slot.material
+                # an unrecorded slot may show a baked copy through data it shares with a recorded one (the hidden
+                # source of instance copies): its original, so both swap in the same emission
+                original = bpy.data.materials.get(original_name) if original_name else unbaked(slot.material)
                 key = original.name if original is not None else ""
                 if key not in emissions:
                     names.append(key or "(no material)")

@@ -57,8 +57,9 @@ class SGLightfieldSettings(bpy.types.PropertyGroup):
                ("RENDERER", "Renderer's Own", "Leave them to the renderer's lighting (in EEVEE, its light probes)")])
     instance_copies: BoolProperty(
         name="Instances as Copies", default=False,
-        description="Bake particle, vertex and face instances as object copies that render in their place until "
-        "Remove SG Bake (they carry no attribute for a lightmap of their own; off: they keep the renderer's lighting)")
+        description="Bake particle, vertex, face and nested collection instances as object copies that render in "
+        "their place until Remove SG Bake (they carry no attribute for a lightmap of their own; off: they keep the "
+        "renderer's lighting)")
     device: EnumProperty(name="Device", items=DEVICE_ITEMS, default="CPU")
     output_dir: StringProperty(name="Bake Directory", description="Where the bake writes its files",
                                default="//sg_bake", subtype="DIR_PATH",

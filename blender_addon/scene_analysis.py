@@ -5,7 +5,6 @@ Reads the scene only: it is evaluated as a render evaluates it (render_evaluatio
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import sys
 from dataclasses import dataclass, field
@@ -16,7 +15,7 @@ import numpy as np
 from ..bake_directory.bake_plan import (GLOSSY_ROUGHNESS_MAX, ROUGH_METALLIC_MAX, BakeInputError, BakePlan, BakeSettings,
                                  EnvironmentPlan, MaterialPlan, ObjectPlan, auto_sg_count)
 from .lightmap_modifier import MODIFIER_TYPES, user_modifiers
-from .stand_ins import (COPYABLE, INSTANCE_COPY_KEY, INSTANCER_STATE_KEY, STAND_IN_TYPES, copied, copies_of, is_copy,
+from .stand_ins import (COPYABLE, INSTANCE_COPY_KEY, STAND_IN_TYPES, copied, copied_state, copies_of, is_copy,
                         is_stand_in, modifiers_turned_off, stand_in_of)
 from .surface_shaders import COPY_KEY, LeafInputs, NeedsNodes, analyse_surface, input_constant, leaves
 
@@ -192,16 +191,24 @@ class Instanced:
     def description(self) -> str:
         return f"{self.count} {self.how} instance{'s' if self.count != 1 else ''} of {', '.join(sorted(self.sources))}"
 
+    @property
+    def copyable(self) -> bool:
+        """Whether object copies can stand in for these instances (stand_ins.copy_instances)."""
+        return "generated geometry" not in self.sources and (
+            self.how in COPYABLE or (self.how == "collection" and self.nested))
+
     def unsupported(self) -> str:
         """Why per-instance lightmaps cannot be built for these instances ("" when they can)."""
         if "generated geometry" in self.sources:
             return "their geometry is made inside the node tree, not an object whose materials the bake can switch"
+        if self.copyable and self.copies:
+            return ""
+        hint = "; Instances as Copies bakes each as an object copy" if self.copyable else ""
         if self.how in COPYABLE:
-            return "" if self.copies else (f"{self.how} instances carry no attribute of their own for the baked "
-                                           "material to find its texels by; Instances as Copies bakes each as an "
-                                           "object copy")
+            return f"{self.how} instances carry no attribute of their own for the baked material to find its texels by" \
+                + hint
         if self.nested:
-            return "instances nested inside instances share one attribute, not one lightmap tile each"
+            return "instances nested inside instances share one attribute, not one lightmap tile each" + hint
         return ""
 
     def reason(self) -> str:
@@ -223,6 +230,8 @@ def instances_by_instancer(depsgraph) -> dict:
         parent = instance.parent.original
         if instance.object.original == parent and parent.type != "MESH":
             continue  # a text's, curve's or metaball's own surface, which Blender hands over as an instance
+        if instance.object.type == "EMPTY":
+            continue  # an empty renders nothing; what it instances in turn comes as instances of its own
         if parent.name not in found:
             if parent.type == "EMPTY" and parent.instance_type == "COLLECTION":
                 how = "collection"
@@ -249,7 +258,8 @@ def copied_instancers(scene) -> dict:
     found = {}
     for instancer in scene.objects:
         if copied(instancer):
-            entry = Instanced(json.loads(instancer[INSTANCER_STATE_KEY])["how"], copies=True)
+            state = copied_state(instancer)
+            entry = Instanced(state["how"], nested=state["nested"], copies=True)
             for copy in copies_of(instancer):
                 source = copy[INSTANCE_COPY_KEY]["source"]
                 entry.count += 1
@@ -264,7 +274,7 @@ def scene_instancers(scene, depsgraph, settings) -> dict:
     whether its instances are (to be) baked as copies."""
     found = {**instances_by_instancer(depsgraph), **copied_instancers(scene)}
     for instanced in found.values():
-        instanced.copies |= settings.instance_copies and instanced.how in COPYABLE
+        instanced.copies |= settings.instance_copies and instanced.copyable
     return found
 
 
@@ -313,7 +323,7 @@ def bake_targets(scene, object_plans, depsgraph) -> list:
             continue
         instancers = instances_by_instancer(depsgraph) if instancers is None else instancers
         found = instancers.get(plan.instancer)
-        if found is not None and found.how in COPYABLE:
+        if found is not None and found.copyable and found.copies:
             raise BakeInputError(f"'{plan.name}': its object copy is missing (the capture makes it); run the capture "
                                  "stage first")
         if found is None or plan.instance >= len(found.entries) or found.entries[plan.instance][0] != plan.source:
@@ -339,7 +349,7 @@ def _instance_plans(instancer, instanced: Instanced, settings, depsgraph, surfac
         reason = "; ".join(([f"glossy material(s): {', '.join(glossy)}"] if glossy else [])
                            + ([f"irradiance lightmap: {', '.join(lightmapped)}"] if lightmapped else [])) or \
             "no glossy or lightmapped material: left to the renderer's own lighting"
-        if obj.type not in MODIFIER_TYPES:
+        if obj.type in STAND_IN_TYPES:
             reason = (f"left to the renderer: an instanced {GEOMETRY_KINDS[obj.type]} has no mesh stand-in (the "
                       f"{GEOMETRY_KINDS[obj.type]} itself, where it stands in the scene, bakes through one)")
         plans.append(ObjectPlan(name, round(area, 6), int(np.ceil(area * settings.texel_density**2)) if baked else 0,
@@ -388,6 +398,8 @@ def triangle_areas(points, verts):
 def _evaluated_triangles(obj, depsgraph):
     """(vertex coordinates (V, 3), triangles (T, 3)) of `obj`'s evaluated surface in object space; (None, None)
     when it has no faces."""
+    if obj.type not in GEOMETRY_KINDS:  # a lamp, a camera, ... (a collection instance may hold one)
+        return None, None
     evaluated = obj.evaluated_get(depsgraph)
     mesh = evaluated.to_mesh()
     try:
@@ -619,10 +631,11 @@ def _build_plan(scene, settings: BakeSettings, depsgraph) -> BakePlan:
             warnings.append(f"'{obj.name}' is baked and also instanced by {', '.join(instancers)}: its instances show "
                             f"the lighting baked where '{obj.name}' itself stands")
     if glossy_instances:
-        copyable = any(o.how in COPYABLE and not o.copies for o in every_instancer.values())
+        copyable = any(o.copyable and not o.copies for o in every_instancer.values())
         warnings.append("instances of glossy objects are not baked: " + ", ".join(glossy_instances)
                         + "; each keeps the renderer's own lighting (the plan says why"
-                        + ("; Instances as Copies bakes particle, vertex and face instances" if copyable else "") + ")")
+                        + ("; Instances as Copies bakes particle, vertex, face and nested collection instances"
+                           if copyable else "") + ")")
     if not any(o.bake_lightfield for o in objects):
         left = sorted({mp.name for o in objects for mp in o.materials if mp.reason.startswith("left to the renderer")})
         raise BakeInputError("nothing to bake: no object or instance has a glossy material (roughness below "

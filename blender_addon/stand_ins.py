@@ -13,11 +13,12 @@ the viewport, so renders and the rendered viewport show the stand-in, not both. 
 put back by Remove SG Bake, which deletes the stand-in with its mesh.
 
 Particle, vertex and face instances carry no attribute a material can find its tile by (Particle Info is Cycles
-only). Where the settings ask for it (``instance_copies``), the capture gives each such instance an *object copy*:
+only), and instances nested in a collection instance share the top level's. Where the settings ask for it
+(``instance_copies``), the capture gives each such instance an *object copy*:
 a linked duplicate of the instanced object (its data shared) at the instance's world matrix, in a collection
 ``SG Lightfield copies: INSTANCER``, which gets its tile as any object does. The instancer stops instancing (its
-particle-system modifiers that render objects are turned off in renders and the viewport; vertex or face instancing
-is set to none), so the copies render instead; the copies are a snapshot of the instances at capture time. Remove SG
+particle-system modifiers that render objects are turned off in renders and the viewport; vertex, face or collection
+instancing is set to none), so the copies render instead; the copies are a snapshot of the instances at capture time. Remove SG
 Bake deletes the copies and puts the instancer's settings back.
 """
 from __future__ import annotations
@@ -104,7 +105,7 @@ def ensure_stand_in(source):
     return stand_in
 
 
-COPYABLE = ("particle", "vertex", "face")  # instances that carry no attribute of their own
+COPYABLE = ("particle", "vertex", "face")  # instances that carry no attribute of their own (and nested collections)
 COPIES_PREFIX = "SG Lightfield copies: "
 COPIES_OF_KEY = "sglf_copies_of"  # on a collection of copies: its instancer's name
 INSTANCE_COPY_KEY = "sglf_instance_copy"  # on a copy: {"source": object name, "index": among the instancer's instances}
@@ -121,11 +122,27 @@ def copied(instancer) -> bool:
     return INSTANCER_STATE_KEY in instancer
 
 
+def copied_state(instancer) -> dict:
+    """What the copies changed on `instancer`: {"how", "nested", and "modifiers" ({name: [show_render, show_viewport]})
+    or "instance_type" and "hide_render"}, its own values; {} where nothing was copied."""
+    return json.loads(instancer[INSTANCER_STATE_KEY]) if copied(instancer) else {}
+
+
 def modifiers_turned_off(instancer) -> set:
     """The names of the particle-system modifiers the copies turned off (they render in the user's setup)."""
-    if not copied(instancer):
-        return set()
-    return set(json.loads(instancer[INSTANCER_STATE_KEY])) - {"how", "instance_type", "hide_render"}
+    return set(copied_state(instancer).get("modifiers", {}))
+
+
+def _instancing_settings(instancer, state, on: bool) -> list:
+    """(owner, setting, value) that turn `instancer`'s instancing on (its own values, from `state`) or off."""
+    if state["how"] == "particle":
+        return [(instancer.modifiers[name], setting, value if on else False)
+                for name, values in state["modifiers"].items() if name in instancer.modifiers
+                for setting, value in zip(("show_render", "show_viewport"), values)]
+    # Vertex, face or collection instancing set to none; a mesh that hid itself as an instancer would render then.
+    return [(instancer, "instance_type", state["instance_type"] if on else "NONE"),
+            (instancer, "hide_render", state["hide_render"] if on else
+             state["hide_render"] or (instancer.type == "MESH" and not instancer.show_instancer_for_render))]
 
 
 def _copies_collection(instancer):
@@ -139,9 +156,9 @@ def copies_of(instancer) -> list:
     return sorted(copies, key=lambda o: int(o[INSTANCE_COPY_KEY]["index"]))
 
 
-def copy_instances(scene, instancer, how, entries, names) -> list:
-    """Replace `instancer`'s instances (`how` one of COPYABLE; `entries`: (source object name, world matrix) each, in
-    its order; `names`: the plan's name of each) by object copies; returns them."""
+def copy_instances(scene, instancer, how, nested, entries, names) -> list:
+    """Replace `instancer`'s instances (`how`: one of COPYABLE, or "collection" where `nested`; `entries`: (source
+    object name, world matrix) each, in its order; `names`: the plan's name of each) by object copies; returns them."""
     collection = bpy.data.collections.new(f"{COPIES_PREFIX}{instancer.name}")
     collection[COPIES_OF_KEY] = instancer.name
     scene.collection.children.link(collection)
@@ -160,18 +177,15 @@ def copy_instances(scene, instancer, how, entries, names) -> list:
         copy.hide_select = True  # clicks select the instancer, which the user edits
         collection.objects.link(copy)
         copies.append(copy)
-    state = {"how": how}
+    state = {"how": how, "nested": bool(nested)}
     if how == "particle":
-        for modifier in instancer.modifiers:
-            if modifier.type == "PARTICLE_SYSTEM" and \
-                    modifier.particle_system.settings.render_type in ("OBJECT", "COLLECTION"):
-                state[modifier.name] = [modifier.show_render, modifier.show_viewport]
-                modifier.show_render = modifier.show_viewport = False
+        state["modifiers"] = {m.name: [m.show_render, m.show_viewport] for m in instancer.modifiers
+                              if m.type == "PARTICLE_SYSTEM"
+                              and m.particle_system.settings.render_type in ("OBJECT", "COLLECTION")}
     else:
         state.update(instance_type=instancer.instance_type, hide_render=instancer.hide_render)
-        if not instancer.show_instancer_for_render:
-            instancer.hide_render = True  # no longer an instancer: it would render its own mesh
-        instancer.instance_type = "NONE"
+    for owner, setting, value in _instancing_settings(instancer, state, on=False):
+        setattr(owner, setting, value)
     instancer[INSTANCER_STATE_KEY] = json.dumps(state)
     return copies
 
@@ -183,19 +197,10 @@ def original_instancing(scene):
     changed = []
     try:
         for instancer in [o for o in scene.objects if copied(o)]:
-            state = json.loads(instancer[INSTANCER_STATE_KEY])
-            for copy in copies_of(instancer):
-                changed.append((copy, "hide_render", copy.hide_render))
-                copy.hide_render = True
-            if state.pop("how") == "particle":
-                for name, (show_render, _) in state.items():
-                    modifier = instancer.modifiers[name]
-                    changed.append((modifier, "show_render", modifier.show_render))
-                    modifier.show_render = show_render
-            else:
-                for name in ("instance_type", "hide_render"):
-                    changed.append((instancer, name, getattr(instancer, name)))
-                    setattr(instancer, name, state[name])
+            settings = [(copy, "hide_render", True) for copy in copies_of(instancer)]
+            for owner, setting, value in settings + _instancing_settings(instancer, copied_state(instancer), on=True):
+                changed.append((owner, setting, getattr(owner, setting)))
+                setattr(owner, setting, value)
         yield
     finally:
         for owner, name, value in reversed(changed):
@@ -208,14 +213,8 @@ def _uncopy(instancer) -> None:
         for copy in list(collection.objects):
             bpy.data.objects.remove(copy)  # its data is the source's: it stays
         bpy.data.collections.remove(collection)
-    state = json.loads(instancer[INSTANCER_STATE_KEY])
-    if state.pop("how") == "particle":
-        for name, (show_render, show_viewport) in state.items():
-            modifier = instancer.modifiers.get(name)
-            if modifier is not None:
-                modifier.show_render, modifier.show_viewport = show_render, show_viewport
-    else:
-        instancer.instance_type, instancer.hide_render = state["instance_type"], state["hide_render"]
+    for owner, setting, value in _instancing_settings(instancer, copied_state(instancer), on=True):
+        setattr(owner, setting, value)
     del instancer[INSTANCER_STATE_KEY]
 
 

@@ -515,7 +515,8 @@ def test_a_metaball_and_a_nurbs_surface_bake_through_live_stand_ins_that_remove_
 
 def _copies_scene():
     """A floor; 20 glossy pebbles scattered by a particle system on a hidden emitter; a glossy stud on each of a
-    holder mesh's 8 vertices (vertex instancing)."""
+    holder mesh's 8 vertices (vertex instancing); a table set: a collection instance of a plate and of a collection
+    instance of a cup and a point lamp (nested)."""
     chrome, brass = material("chrome", 0.1, metallic=1.0), material("brass", 0.3, metallic=1.0)
     floor = mesh_object("Floor", cube(4.0), material("tiles", 0.3))
     floor.scale.z = 0.01
@@ -529,7 +530,20 @@ def _copies_scene():
     stud = mesh_object("Stud", cube(0.08), brass)
     stud.parent = holder
     holder.instance_type = "VERTS"
-    scene = scene_with(floor, pebble, emitter, holder, stud, name="copies test")
+    cup = mesh_object("Cup", cube(0.2), brass)  # a table set: a collection instance inside a collection instance
+    candle = bpy.data.objects.new("Candle", bpy.data.lights.new("Candle", "POINT"))
+    candle.location = (0.0, 0.0, 0.3)
+    inner, outer = bpy.data.collections.new("Cup Set"), bpy.data.collections.new("Table Set")
+    for obj in (cup, candle):
+        inner.objects.link(obj)
+    cup_set = bpy.data.objects.new("Cup Set Instance", None)
+    cup_set.instance_type, cup_set.instance_collection, cup_set.location = "COLLECTION", inner, (0.4, 0.0, 0.0)
+    outer.objects.link(cup_set)
+    outer.objects.link(mesh_object("Plate", cube(0.5), chrome))
+    table_set = bpy.data.objects.new("Table Set Instance", None)
+    table_set.instance_type, table_set.instance_collection = "COLLECTION", outer
+    table_set.location = (-1.5, 1.5, 0.3)
+    scene = scene_with(floor, pebble, emitter, holder, stud, table_set, name="copies test")
     emitter.modifiers.new("Pebbles", "PARTICLE_SYSTEM")
     particles = emitter.particle_systems[0].settings
     particles.count, particles.render_type, particles.instance_object = 20, "OBJECT", pebble
@@ -540,37 +554,46 @@ def _copies_scene():
 
 
 def test_particle_and_vertex_instances_bake_as_object_copies_that_remove_takes_away(tmp_path):
-    """Without Instances as Copies the plan names particle and vertex instances as left to the renderer and says
-    what bakes them; with it, each of the 20 particles (all of them, though the viewport shows half) and 8 vertex
-    instances is a plan entry with texels, the capture replaces them by object copies with tiles of their own, a plan
-    made after the capture is the same plan, and Remove SG Bake gives the instancers back their settings."""
+    """Without Instances as Copies the plan names particle, vertex and nested instances as left to the renderer and
+    says what bakes them; with it, each of the 20 particles (all of them, though the viewport shows half), 8 vertex
+    instances and the nested table set's plate and cup is a plan entry with texels, the capture replaces them by
+    object copies with tiles of their own (the lamp inside the set is copied too, so it still lights), a plan made
+    after the capture is the same plan, and Remove SG Bake gives the instancers back their settings."""
     from sg_lightfield.blender_addon import stand_ins
     from sg_lightfield.blender_addon.capture import OFFSET_KEY
 
     scene = _copies_scene()
     by_base = {base_name(o.name): o for o in scene.objects}
-    owners = [by_base[n] for n in ("Floor", "Pebble", "Emitter", "Holder", "Stud")]
+    owners = [by_base[n] for n in ("Floor", "Pebble", "Emitter", "Holder", "Stud", "Table Set Instance")]
     before = {o.name: object_fingerprint(o) for o in owners}
     particles = by_base["Emitter"].particle_systems[0].settings
     left = build_plan(scene, DRAFT)
     emitter_line = next(o for o in left.objects if base_name(o.name) == "Emitter")
     assert "left to the renderer" in emitter_line.reason and "Instances as Copies" in emitter_line.reason
+    table_line = next(o for o in left.objects if base_name(o.name) == "Table Set Instance")
+    assert "nested inside instances" in table_line.reason and "Instances as Copies" in table_line.reason
     assert not any(o.instancer for o in left.objects)
     settings = BakeSettings.from_preset("draft", texel_density=16.0, instance_copies=True)
     plan = build_plan(scene, settings)
     pebbles = [o for o in plan.baked_objects if base_name(o.instancer) == "Emitter"]
     studs = [o for o in plan.baked_objects if base_name(o.instancer) == "Holder"]
-    assert len(pebbles) == 20 and len(studs) == 8
-    assert all(o.texels > 0 and o.geometry.endswith("as an object copy") for o in pebbles + studs)
+    table = [o for o in plan.baked_objects if base_name(o.instancer) == "Table Set Instance"]
+    assert len(pebbles) == 20 and len(studs) == 8 and sorted(base_name(o.source) for o in table) == ["Cup", "Plate"]
+    assert all(o.texels > 0 and o.geometry.endswith("as an object copy") for o in pebbles + studs + table)
     assert particles.display_percentage == 50
     result = capture(scene, plan, tmp_path)
-    copies = {o["name"]: o["texels"] for o in result.objects if o["name"] in {p.name for p in pebbles + studs}}
-    assert len(copies) == 28 and min(copies.values()) > 0, copies
+    copies = {o["name"]: o["texels"] for o in result.objects if o["name"] in {p.name for p in pebbles + studs + table}}
+    assert len(copies) == 30 and min(copies.values()) > 0, copies
     for instancer, count in (("Emitter", 20), ("Holder", 8)):
         made = stand_ins.copies_of(by_base[instancer])
         assert len(made) == count and len({tuple(c[OFFSET_KEY]) for c in made}) == count  # a tile each
         assert all(c.data == made[0].data for c in made)  # linked duplicates of the instanced object
+    table_copies = {base_name(c[stand_ins.INSTANCE_COPY_KEY]["source"]): c
+                    for c in stand_ins.copies_of(by_base["Table Set Instance"])}
+    assert sorted(table_copies) == ["Candle", "Cup", "Plate"] and table_copies["Candle"].type == "LIGHT"
+    np.testing.assert_allclose(table_copies["Candle"].matrix_world.translation, (-1.1, 1.5, 0.6), atol=1e-6)
     assert not by_base["Emitter"].modifiers["Pebbles"].show_render and by_base["Holder"].instance_type == "NONE"
+    assert by_base["Table Set Instance"].instance_type == "NONE"
     with active_scene(scene) as depsgraph:
         depsgraph.update()
         assert not any(i.is_instance and i.parent and i.parent.original.name in ("Emitter", "Holder")
