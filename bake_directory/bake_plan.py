@@ -137,8 +137,8 @@ class BakeSettings:
     rough_materials: str = "irradiance"  # rough dielectrics: an irradiance lightmap, or the renderer's own lighting
     device: str = "cpu"
     irradiance_detail: int = 1  # diffuse light at this many times the texel density (1: from the light fields)
-    # Particle, vertex, face and nested collection instances carry no attribute of their own for a tile: baked as
-    # object copies that render in their place (True), or left to the renderer's own lighting.
+    # Particle, vertex, face, nested and node-made instances carry no attribute of their own for a tile (or no object
+    # to switch materials on): baked as object copies that render in their place (True), or left to the renderer.
     instance_copies: bool = False
 
     @property

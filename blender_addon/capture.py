@@ -598,12 +598,15 @@ def _add_stand_ins(scene, plan) -> None:
     with active_scene(scene), render_evaluation(instancers):
         depsgraph = bpy.context.evaluated_depsgraph_get()
         depsgraph.update()
-        found = instances_by_instancer(depsgraph)
+        found = instances_by_instancer(depsgraph, keep_meshes={o.name for o in instancers})
     for instancer in instancers:
         instanced = found.get(instancer.name)
         if instanced is not None and instanced.copyable:
             copy_instances(scene, instancer, instanced.how, instanced.nested, instanced.entries,
-                           instance_targets(instancer.name, instanced))
+                           instance_targets(instancer.name, instanced), instanced.meshes)
+        elif instanced is not None:
+            for mesh in instanced.meshes.values():
+                bpy.data.meshes.remove(mesh)
 
 
 def capture(scene, plan, out_dir, *, lightmap_uv_layer: str = "", progress=_noop_progress,

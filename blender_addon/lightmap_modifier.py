@@ -49,10 +49,16 @@ def lightmap_modifier(obj):
                  and m.node_group.get(OWNED_KEY) and m.name.startswith(MODIFIER_NAME)), None)
 
 
+# On the node group of the modifier that takes a Geometry Nodes instancer's instances away while object copies render
+# in their place (stand_ins.copy_instances).
+INSTANCES_OFF_KEY = "sglf_instances_off"
+
+
 def user_modifiers(obj) -> list:
-    """The object's own modifiers that change what renders (ours excluded)."""
+    """The object's own modifiers that change what renders (the bake's excluded)."""
     ours = lightmap_modifier(obj)
-    return [m for m in getattr(obj, "modifiers", ()) if m != ours and (m.show_render or m.show_viewport)]
+    return [m for m in getattr(obj, "modifiers", ()) if m != ours and (m.show_render or m.show_viewport)
+            and not (m.type == "NODES" and m.node_group is not None and m.node_group.get(INSTANCES_OFF_KEY))]
 
 
 def _node(tree, kind, **props):

@@ -57,7 +57,7 @@ class SGLightfieldSettings(bpy.types.PropertyGroup):
                ("RENDERER", "Renderer's Own", "Leave them to the renderer's lighting (in EEVEE, its light probes)")])
     instance_copies: BoolProperty(
         name="Instances as Copies", default=False,
-        description="Bake particle, vertex, face and nested collection instances as object copies that render in "
+        description="Bake particle, vertex, face, nested and node-made instances as object copies that render in "
         "their place until Remove SG Bake (they carry no attribute for a lightmap of their own; off: they keep the "
         "renderer's lighting)")
     device: EnumProperty(name="Device", items=DEVICE_ITEMS, default="CPU")

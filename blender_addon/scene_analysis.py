@@ -187,23 +187,29 @@ class Instanced:
     entries: list = field(default_factory=list)
     nested: bool = False  # instances inside instances (a collection through Collection Info, nested instancers)
     copies: bool = False  # baked as object copies (stand_ins.copy_instances): the settings ask for it, or done
+    # Geometry made inside the node tree (its entry's source is the instancer itself): entry index -> (vertex
+    # coordinates, triangles, material names) of its mesh; `meshes`: entry index -> a copy of that mesh (capture).
+    generated: dict = field(default_factory=dict)
+    meshes: dict = field(default_factory=dict)
+    not_mesh: bool = False  # node-made geometry that is not a mesh (curves, points): nothing to copy
 
     def description(self) -> str:
         return f"{self.count} {self.how} instance{'s' if self.count != 1 else ''} of {', '.join(sorted(self.sources))}"
 
     @property
     def copyable(self) -> bool:
-        """Whether object copies can stand in for these instances (stand_ins.copy_instances)."""
-        return "generated geometry" not in self.sources and (
-            self.how in COPYABLE or (self.how == "collection" and self.nested))
+        """Whether these instances bake only as object copies (stand_ins.copy_instances): they carry no attribute of
+        their own, or there is no object to switch materials on."""
+        return not self.not_mesh and (self.how in COPYABLE or self.nested or "generated geometry" in self.sources)
 
     def unsupported(self) -> str:
         """Why per-instance lightmaps cannot be built for these instances ("" when they can)."""
-        if "generated geometry" in self.sources:
-            return "their geometry is made inside the node tree, not an object whose materials the bake can switch"
         if self.copyable and self.copies:
             return ""
         hint = "; Instances as Copies bakes each as an object copy" if self.copyable else ""
+        if "generated geometry" in self.sources:
+            return "their geometry is made inside the node tree, not an object whose materials the bake can switch" \
+                + (hint or "; it is not a mesh, so no copy can stand in for it")
         if self.how in COPYABLE:
             return f"{self.how} instances carry no attribute of their own for the baked material to find its texels by" \
                 + hint
@@ -221,9 +227,10 @@ class Instanced:
         return f"its {self.description()}: each baked with texels of its own (listed below)"
 
 
-def instances_by_instancer(depsgraph) -> dict:
-    """Instancer name -> Instanced, from the evaluated scene's instances."""
-    found = {}
+def instances_by_instancer(depsgraph, keep_meshes=()) -> dict:
+    """Instancer name -> Instanced, from the evaluated scene's instances. For the instancers named in `keep_meshes`,
+    each instance of node-made geometry gets a copy of its mesh (Instanced.meshes), which the caller owns."""
+    found, surfaces = {}, {}
     for instance in depsgraph.object_instances:
         if not instance.is_instance or instance.parent is None:
             continue
@@ -249,6 +256,17 @@ def instances_by_instancer(depsgraph) -> dict:
         entry.entries.append((source.name, [list(row) for row in instance.matrix_world]))
         levels = [i for i in instance.persistent_id if i != NESTED_ID]
         entry.nested |= len(levels) > (1 if how == "collection" else 2)
+        if source == parent:  # node-made geometry: read now, its object lives only during this iteration
+            data = instance.object.data
+            if not isinstance(data, bpy.types.Mesh):
+                entry.not_mesh = True
+                continue
+            if data.as_pointer() not in surfaces:  # instances of one node-made mesh share it
+                _, verts, _, coords = loop_triangle_arrays(data)
+                surfaces[data.as_pointer()] = (coords, verts, tuple(m.name if m else "" for m in data.materials))
+            entry.generated[len(entry.entries) - 1] = surfaces[data.as_pointer()]
+            if parent.name in keep_meshes:
+                entry.meshes[len(entry.entries) - 1] = bpy.data.meshes.new_from_object(instance.object)
     return found
 
 
@@ -263,8 +281,14 @@ def copied_instancers(scene) -> dict:
             for copy in copies_of(instancer):
                 source = copy[INSTANCE_COPY_KEY]["source"]
                 entry.count += 1
-                entry.sources.add(source)
                 entry.entries.append((source, [list(row) for row in copy.matrix_world]))
+                if copy[INSTANCE_COPY_KEY].get("generated"):  # node-made geometry: the copy holds its mesh
+                    entry.sources.add("generated geometry")
+                    _, verts, _, coords = loop_triangle_arrays(copy.data)
+                    entry.generated[len(entry.entries) - 1] = (coords, verts, tuple(
+                        m.name if m else "" for m in copy.data.materials))
+                else:
+                    entry.sources.add(source)
             found[instancer.name] = entry
     return found
 
@@ -279,8 +303,10 @@ def scene_instancers(scene, depsgraph, settings) -> dict:
 
 
 def instance_targets(instanced_name, instanced: Instanced) -> list:
-    """The plan names of a supported instancer's instances, in order: 'Grid: Sphere #3'."""
-    return [f"{instanced_name}: {source} #{k + 1}" for k, (source, _) in enumerate(instanced.entries)]
+    """The plan names of a supported instancer's instances, in order: 'Grid: Sphere #3', 'Grid: generated geometry
+    #4' (a mesh made inside the node tree)."""
+    return [f"{instanced_name}: {'generated geometry' if k in instanced.generated else source} #{k + 1}"
+            for k, (source, _) in enumerate(instanced.entries)]
 
 
 @dataclass
@@ -323,7 +349,7 @@ def bake_targets(scene, object_plans, depsgraph) -> list:
             continue
         instancers = instances_by_instancer(depsgraph) if instancers is None else instancers
         found = instancers.get(plan.instancer)
-        if found is not None and found.copyable and found.copies:
+        if found is not None and found.copyable:
             raise BakeInputError(f"'{plan.name}': its object copy is missing (the capture makes it); run the capture "
                                  "stage first")
         if found is None or plan.instance >= len(found.entries) or found.entries[plan.instance][0] != plan.source:
@@ -339,22 +365,30 @@ def _instance_plans(instancer, instanced: Instanced, settings, depsgraph, surfac
     plans, triangles = [], {}
     for k, (name, (source, matrix)) in enumerate(zip(instance_targets(instancer, instanced), instanced.entries)):
         obj = bpy.data.objects[source]
-        _, mat_plans = surfaces_of(obj)
-        if source not in triangles:  # every instance of an object shares its evaluated surface
-            triangles[source] = _evaluated_triangles(obj, depsgraph)
-        area = _area_under(matrix, *triangles[source])
+        if k in instanced.generated:  # node-made geometry: its own mesh and materials
+            coords, verts, material_names = instanced.generated[k]
+            _, mat_plans = surfaces_of(obj, [bpy.data.materials.get(n) for n in material_names] or [None])
+            area = _area_under(matrix, coords, verts)
+            source_type = "MESH"
+        else:
+            _, mat_plans = surfaces_of(obj)
+            if source not in triangles:  # every instance of an object shares its evaluated surface
+                triangles[source] = _evaluated_triangles(obj, depsgraph)
+            area = _area_under(matrix, *triangles[source])
+            source_type = obj.type
         glossy = [mp.name for mp in mat_plans if mp.glossy]
         lightmapped = [mp.name for mp in mat_plans if mp.irradiance_only]
-        baked = bool(glossy or lightmapped) and area > 0 and obj.type in MODIFIER_TYPES
+        baked = bool(glossy or lightmapped) and area > 0 and source_type in MODIFIER_TYPES
         reason = "; ".join(([f"glossy material(s): {', '.join(glossy)}"] if glossy else [])
                            + ([f"irradiance lightmap: {', '.join(lightmapped)}"] if lightmapped else [])) or \
             "no glossy or lightmapped material: left to the renderer's own lighting"
-        if obj.type in STAND_IN_TYPES:
+        if source_type in STAND_IN_TYPES:
             reason = (f"left to the renderer: an instanced {GEOMETRY_KINDS[obj.type]} has no mesh stand-in (the "
                       f"{GEOMETRY_KINDS[obj.type]} itself, where it stands in the scene, bakes through one)")
         plans.append(ObjectPlan(name, round(area, 6), int(np.ceil(area * settings.texel_density**2)) if baked else 0,
                                 baked, mat_plans, reason, f"{instanced.how} instance {k + 1} of {instanced.count}, "
-                                f"of '{source}' on '{instancer}'" + (", as an object copy" if instanced.copies else ""),
+                                f"of '{'generated geometry' if k in instanced.generated else source}' on "
+                                f"'{instancer}'" + (", as an object copy" if instanced.copies else ""),
                                 instancer=instancer, source=source, instance=k))
     return plans
 
@@ -574,8 +608,9 @@ def _build_plan(scene, settings: BakeSettings, depsgraph) -> BakePlan:
     objects, emissive, warnings = [], [], []
     analysed, emits = {}, {}  # per material: its plan, and whether its surface emits (each surface analysed once)
 
-    def surfaces_of(obj):
-        mats = [slot.material for slot in obj.material_slots] or [None]
+    def surfaces_of(obj, mats=None):
+        """(materials, their plans) of an object's slots, or of `mats` (node-made geometry's own)."""
+        mats = mats if mats is not None else [slot.material for slot in obj.material_slots] or [None]
         for m in mats:
             if m not in analysed:
                 original = unbaked(m)
@@ -634,8 +669,7 @@ def _build_plan(scene, settings: BakeSettings, depsgraph) -> BakePlan:
         copyable = any(o.copyable and not o.copies for o in every_instancer.values())
         warnings.append("instances of glossy objects are not baked: " + ", ".join(glossy_instances)
                         + "; each keeps the renderer's own lighting (the plan says why"
-                        + ("; Instances as Copies bakes particle, vertex, face and nested collection instances"
-                           if copyable else "") + ")")
+                        + ("; Instances as Copies bakes them as object copies" if copyable else "") + ")")
     if not any(o.bake_lightfield for o in objects):
         left = sorted({mp.name for o in objects for mp in o.materials if mp.reason.startswith("left to the renderer")})
         raise BakeInputError("nothing to bake: no object or instance has a glossy material (roughness below "

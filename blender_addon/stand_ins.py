@@ -13,13 +13,15 @@ the viewport, so renders and the rendered viewport show the stand-in, not both. 
 put back by Remove SG Bake, which deletes the stand-in with its mesh.
 
 Particle, vertex and face instances carry no attribute a material can find its tile by (Particle Info is Cycles
-only), and instances nested in a collection instance share the top level's. Where the settings ask for it
-(``instance_copies``), the capture gives each such instance an *object copy*:
-a linked duplicate of the instanced object (its data shared) at the instance's world matrix, in a collection
-``SG Lightfield copies: INSTANCER``, which gets its tile as any object does. The instancer stops instancing (its
-particle-system modifiers that render objects are turned off in renders and the viewport; vertex, face or collection
-instancing is set to none), so the copies render instead; the copies are a snapshot of the instances at capture time. Remove SG
-Bake deletes the copies and puts the instancer's settings back.
+only), instances nested in other instances share the top level's, and geometry made inside a node tree has no
+object whose slots the bake could switch. Where the settings ask for it (``instance_copies``), the capture gives
+each such instance an *object copy*: a linked duplicate of the instanced object (its data shared; for node-made
+geometry, a mesh of its own) at the instance's world matrix, in a collection ``SG Lightfield copies: INSTANCER``,
+which gets its tile as any object does. The instancer stops instancing (its particle-system modifiers that render
+objects are turned off in renders and the viewport; vertex, face or collection instancing is set to none; a
+Geometry Nodes instancer gets a last modifier, ``SG Lightfield instances off``, that drops its instances and keeps
+the rest), so the copies render instead; the copies are a snapshot of the instances at capture time. Remove SG Bake
+deletes the copies and puts the instancer's settings back.
 """
 from __future__ import annotations
 
@@ -29,7 +31,7 @@ import json
 import bpy
 from mathutils import Matrix
 
-from .lightmap_modifier import lightmap_modifier
+from .lightmap_modifier import INSTANCES_OFF_KEY, lightmap_modifier
 
 STAND_IN_TYPES = {"SURFACE", "META"}  # object types Blender gives no modifiers
 STAND_IN_PREFIX = "SG Lightfield stand-in: "
@@ -49,7 +51,7 @@ def is_stand_in(obj) -> bool:
 
 
 def has_stand_in(obj) -> bool:
-    """A source the bake hid behind a stand-in (it renders through the stand-in)."""
+    """A source the bake made invisible behind a stand-in (it renders through the stand-in)."""
     return SOURCE_STATE_KEY in obj
 
 
@@ -76,7 +78,7 @@ def _group():
 
 
 def ensure_stand_in(source):
-    """The stand-in of `source`, made (and the source hidden behind it) where it has none yet."""
+    """The stand-in of `source`, made (and the source made invisible behind it) where it has none yet."""
     stand_in = stand_in_of(source)
     if stand_in is not None:
         return stand_in
@@ -105,10 +107,13 @@ def ensure_stand_in(source):
     return stand_in
 
 
-COPYABLE = ("particle", "vertex", "face")  # instances that carry no attribute of their own (and nested collections)
+COPYABLE = ("particle", "vertex", "face")  # instancers whose instances carry no attribute of their own (nested and
+# node-made instances of any instancer bake as copies too: scene_analysis.Instanced.copyable)
 COPIES_PREFIX = "SG Lightfield copies: "
 COPIES_OF_KEY = "sglf_copies_of"  # on a collection of copies: its instancer's name
-INSTANCE_COPY_KEY = "sglf_instance_copy"  # on a copy: {"source": object name, "index": among the instancer's instances}
+# On a copy: {"source": the instanced object's name, "index": among the instancer's instances, "generated": whether it
+# holds node-made geometry in a mesh of its own}
+INSTANCE_COPY_KEY = "sglf_instance_copy"
 INSTANCER_STATE_KEY = "sglf_instance_copies"  # on an instancer whose instances were copied: its own settings, JSON
 OWN_KEYS_PREFIX = "sglf_"  # the bake's properties, which a copy must not inherit from its source
 
@@ -123,8 +128,9 @@ def copied(instancer) -> bool:
 
 
 def copied_state(instancer) -> dict:
-    """What the copies changed on `instancer`: {"how", "nested", and "modifiers" ({name: [show_render, show_viewport]})
-    or "instance_type" and "hide_render"}, its own values; {} where nothing was copied."""
+    """What the copies changed on `instancer`: {"how", "nested", and for particles "modifiers" ({name: [show_render,
+    show_viewport]}), for vertex, face and collection instancing "instance_type" and "hide_render"}, its own values
+    (a Geometry Nodes instancer got a modifier instead); {} where nothing was copied."""
     return json.loads(instancer[INSTANCER_STATE_KEY]) if copied(instancer) else {}
 
 
@@ -133,8 +139,38 @@ def modifiers_turned_off(instancer) -> set:
     return set(copied_state(instancer).get("modifiers", {}))
 
 
+INSTANCES_OFF_NAME = "SG Lightfield instances off"
+
+
+def _instances_off_group():
+    """The shared Geometry Nodes group that passes every component of a geometry but its instances."""
+    existing = next((g for g in bpy.data.node_groups if g.get(INSTANCES_OFF_KEY)), None)
+    if existing is not None:
+        return existing
+    tree = bpy.data.node_groups.new(INSTANCES_OFF_NAME, "GeometryNodeTree")
+    tree[INSTANCES_OFF_KEY] = True
+    tree.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    tree.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    parts, join = tree.nodes.new("GeometryNodeSeparateComponents"), tree.nodes.new("GeometryNodeJoinGeometry")
+    tree.links.new(tree.nodes.new("NodeGroupInput").outputs[0], parts.inputs[0])
+    for output in parts.outputs:
+        if output.name != "Instances":
+            tree.links.new(output, join.inputs[0])
+    tree.links.new(join.outputs[0], tree.nodes.new("NodeGroupOutput").inputs[0])
+    return tree
+
+
+def _instances_off(instancer):
+    """The modifier that takes `instancer`'s instances away, or None."""
+    return next((m for m in instancer.modifiers if m.type == "NODES" and m.node_group is not None
+                 and m.node_group.get(INSTANCES_OFF_KEY)), None)
+
+
 def _instancing_settings(instancer, state, on: bool) -> list:
     """(owner, setting, value) that turn `instancer`'s instancing on (its own values, from `state`) or off."""
+    if state["how"] == "geometry nodes":  # the bake's modifier after the user's stack drops the instances
+        off = _instances_off(instancer)
+        return [] if off is None else [(off, "show_render", not on), (off, "show_viewport", not on)]
     if state["how"] == "particle":
         return [(instancer.modifiers[name], setting, value if on else False)
                 for name, values in state["modifiers"].items() if name in instancer.modifiers
@@ -156,21 +192,26 @@ def copies_of(instancer) -> list:
     return sorted(copies, key=lambda o: int(o[INSTANCE_COPY_KEY]["index"]))
 
 
-def copy_instances(scene, instancer, how, nested, entries, names) -> list:
-    """Replace `instancer`'s instances (`how`: one of COPYABLE, or "collection" where `nested`; `entries`: (source
-    object name, world matrix) each, in its order; `names`: the plan's name of each) by object copies; returns them."""
+def copy_instances(scene, instancer, how, nested, entries, names, meshes=None) -> list:
+    """Replace `instancer`'s instances (`how`: one of COPYABLE, "collection" or "geometry nodes"; `entries`: (source
+    object name, world matrix) each, in its order; `names`: the plan's name of each; `meshes`: entry index -> a mesh
+    of its own for geometry made inside a node tree) by object copies; returns them."""
+    meshes = meshes or {}
     collection = bpy.data.collections.new(f"{COPIES_PREFIX}{instancer.name}")
     collection[COPIES_OF_KEY] = instancer.name
     scene.collection.children.link(collection)
     copies = []
     for k, ((source, matrix), name) in enumerate(zip(entries, names)):
-        copy = bpy.data.objects[source].copy()  # a linked duplicate: the source's data, modifiers and slots
+        if k in meshes:  # node-made geometry: an object of its own for its mesh
+            copy = bpy.data.objects.new(name, meshes[k])
+        else:
+            copy = bpy.data.objects[source].copy()  # a linked duplicate: the source's data, modifiers and slots
         for key in [key for key in copy.keys() if key.startswith(OWN_KEYS_PREFIX)]:
             del copy[key]
         for modifier in [m for m in copy.modifiers if m.type == "PARTICLE_SYSTEM" or m == lightmap_modifier(copy)]:
             copy.modifiers.remove(modifier)  # no second generation of particles; the source's lightmap modifier
         copy.name = name
-        copy[INSTANCE_COPY_KEY] = {"source": source, "index": k}
+        copy[INSTANCE_COPY_KEY] = {"source": source, "index": k, "generated": k in meshes}
         copy.parent = None
         copy.matrix_world = Matrix(matrix)
         copy.hide_render = copy.hide_viewport = False
@@ -178,7 +219,10 @@ def copy_instances(scene, instancer, how, nested, entries, names) -> list:
         collection.objects.link(copy)
         copies.append(copy)
     state = {"how": how, "nested": bool(nested)}
-    if how == "particle":
+    if how == "geometry nodes":
+        off = instancer.modifiers.new(INSTANCES_OFF_NAME, "NODES")
+        off.node_group = _instances_off_group()
+    elif how == "particle":
         state["modifiers"] = {m.name: [m.show_render, m.show_viewport] for m in instancer.modifiers
                               if m.type == "PARTICLE_SYSTEM"
                               and m.particle_system.settings.render_type in ("OBJECT", "COLLECTION")}
@@ -211,10 +255,18 @@ def _uncopy(instancer) -> None:
     collection = _copies_collection(instancer)
     if collection is not None:
         for copy in list(collection.objects):
-            bpy.data.objects.remove(copy)  # its data is the source's: it stays
+            data = copy.data
+            bpy.data.objects.remove(copy)
+            if isinstance(data, bpy.types.Mesh) and data.users == 0:  # node-made geometry's own (a source's stays)
+                bpy.data.meshes.remove(data)
         bpy.data.collections.remove(collection)
     for owner, setting, value in _instancing_settings(instancer, copied_state(instancer), on=True):
         setattr(owner, setting, value)
+    off = _instances_off(instancer)
+    if off is not None:
+        instancer.modifiers.remove(off)
+    for group in [g for g in bpy.data.node_groups if g.get(INSTANCES_OFF_KEY) and g.users == 0]:
+        bpy.data.node_groups.remove(group)
     del instancer[INSTANCER_STATE_KEY]
 
 

@@ -95,8 +95,8 @@ def parse_args(args: list[str]) -> argparse.Namespace:
                    help="dielectrics of roughness >= 0.6: an irradiance lightmap from the same light field, or the "
                    "renderer's own lighting")
     p.add_argument("--instance-copies", action="store_true",
-                   help="bake particle, vertex, face and nested collection instances as object copies that render in their "
-                   "place until "
+                   help="bake particle, vertex, face, nested and node-made instances as object copies that render in "
+                   "their place until "
                    "the bake is removed (without it they keep the renderer's own lighting)")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     p.add_argument("--tile", metavar="i/N", help="render only share i of N of the tiles (render farms); "

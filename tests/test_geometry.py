@@ -516,7 +516,7 @@ def test_a_metaball_and_a_nurbs_surface_bake_through_live_stand_ins_that_remove_
 def _copies_scene():
     """A floor; 20 glossy pebbles scattered by a particle system on a hidden emitter; a glossy stud on each of a
     holder mesh's 8 vertices (vertex instancing); a table set: a collection instance of a plate and of a collection
-    instance of a cup and a point lamp (nested)."""
+    instance of a cup and a point lamp (nested); six spheres made and instanced by Geometry Nodes."""
     chrome, brass = material("chrome", 0.1, metallic=1.0), material("brass", 0.3, metallic=1.0)
     floor = mesh_object("Floor", cube(4.0), material("tiles", 0.3))
     floor.scale.z = 0.01
@@ -543,7 +543,17 @@ def _copies_scene():
     table_set = bpy.data.objects.new("Table Set Instance", None)
     table_set.instance_type, table_set.instance_collection = "COLLECTION", outer
     table_set.location = (-1.5, 1.5, 0.3)
-    scene = scene_with(floor, pebble, emitter, holder, stud, table_set, name="copies test")
+    def node_sphere(tree):
+        sphere = tree.nodes.new("GeometryNodeMeshUVSphere")
+        sphere.inputs["Radius"].default_value = 0.15
+        tree.links.new(sphere.outputs["Mesh"], (setter := tree.nodes.new("GeometryNodeSetMaterial")).inputs[0])
+        setter.inputs["Material"].default_value = chrome
+        return setter.outputs[0]
+    node_spheres = bpy.data.objects.new("Node Spheres", bpy.data.meshes.new("Node Spheres"))
+    node_spheres.modifiers.new("Scatter", "NODES").node_group = instance_on_grid("Scatter node spheres", (1.0, 0.6),
+                                                                                 node_sphere)
+    node_spheres.location = (1.5, -1.5, 0.2)
+    scene = scene_with(floor, pebble, emitter, holder, stud, table_set, node_spheres, name="copies test")
     emitter.modifiers.new("Pebbles", "PARTICLE_SYSTEM")
     particles = emitter.particle_systems[0].settings
     particles.count, particles.render_type, particles.instance_object = 20, "OBJECT", pebble
@@ -564,7 +574,9 @@ def test_particle_and_vertex_instances_bake_as_object_copies_that_remove_takes_a
 
     scene = _copies_scene()
     by_base = {base_name(o.name): o for o in scene.objects}
-    owners = [by_base[n] for n in ("Floor", "Pebble", "Emitter", "Holder", "Stud", "Table Set Instance")]
+    owners = [by_base[n] for n in ("Floor", "Pebble", "Emitter", "Holder", "Stud", "Table Set Instance",
+                                   "Node Spheres")]
+    meshes_before = set(bpy.data.meshes.keys())
     before = {o.name: object_fingerprint(o) for o in owners}
     particles = by_base["Emitter"].particle_systems[0].settings
     left = build_plan(scene, DRAFT)
@@ -578,12 +590,18 @@ def test_particle_and_vertex_instances_bake_as_object_copies_that_remove_takes_a
     pebbles = [o for o in plan.baked_objects if base_name(o.instancer) == "Emitter"]
     studs = [o for o in plan.baked_objects if base_name(o.instancer) == "Holder"]
     table = [o for o in plan.baked_objects if base_name(o.instancer) == "Table Set Instance"]
+    spheres = [o for o in plan.baked_objects if base_name(o.instancer) == "Node Spheres"]
     assert len(pebbles) == 20 and len(studs) == 8 and sorted(base_name(o.source) for o in table) == ["Cup", "Plate"]
-    assert all(o.texels > 0 and o.geometry.endswith("as an object copy") for o in pebbles + studs + table)
+    assert len(spheres) == 6 and all("generated geometry #" in o.name for o in spheres)
+    assert all(o.texels > 0 and o.geometry.endswith("as an object copy") for o in pebbles + studs + table + spheres)
     assert particles.display_percentage == 50
     result = capture(scene, plan, tmp_path)
-    copies = {o["name"]: o["texels"] for o in result.objects if o["name"] in {p.name for p in pebbles + studs + table}}
-    assert len(copies) == 30 and min(copies.values()) > 0, copies
+    copies = {o["name"]: o["texels"] for o in result.objects
+              if o["name"] in {p.name for p in pebbles + studs + table + spheres}}
+    assert len(copies) == 36 and min(copies.values()) > 0, copies
+    made = stand_ins.copies_of(by_base["Node Spheres"])  # meshes of their own, the node tree's material on them
+    assert len({c.data.name for c in made}) == 6 and all(base_name(c.data.materials[-1].name) == "chrome"
+                                                         for c in made)
     for instancer, count in (("Emitter", 20), ("Holder", 8)):
         made = stand_ins.copies_of(by_base[instancer])
         assert len(made) == count and len({tuple(c[OFFSET_KEY]) for c in made}) == count  # a tile each
@@ -596,11 +614,12 @@ def test_particle_and_vertex_instances_bake_as_object_copies_that_remove_takes_a
     assert by_base["Table Set Instance"].instance_type == "NONE"
     with active_scene(scene) as depsgraph:
         depsgraph.update()
-        assert not any(i.is_instance and i.parent and i.parent.original.name in ("Emitter", "Holder")
-                       for i in depsgraph.object_instances)  # the copies render instead
+        assert not any(i.is_instance and i.parent and i.parent.original.name in (
+            "Emitter", "Holder", "Table Set Instance", "Node Spheres") for i in depsgraph.object_instances)
     assert build_plan(scene, settings).content_hash() == plan.content_hash()
     remove_bake(scene)
     assert not any(stand_ins.is_copy(o) for o in bpy.data.objects)
     assert not any(c.get(stand_ins.COPIES_OF_KEY) for c in bpy.data.collections)
     assert {o.name: object_fingerprint(o) for o in owners} == before
     assert particles.display_percentage == 50
+    assert set(bpy.data.meshes.keys()) == meshes_before  # the node-made spheres' meshes went with their copies
