@@ -68,18 +68,27 @@ def _node(tree, kind, **props):
     return node
 
 
+def geometry_node_group(key, name, object_inputs=()) -> tuple:
+    """(the file's Geometry Nodes group marked with the property `key`, False), or (a new one named `name` with a
+    Geometry input and output and an Object input per name in `object_inputs`, True) for the caller to fill."""
+    existing = next((g for g in bpy.data.node_groups if g.get(key) and g.bl_idname == "GeometryNodeTree"), None)
+    if existing is not None:
+        return existing, False
+    tree = bpy.data.node_groups.new(name, "GeometryNodeTree")
+    tree[key] = True
+    tree.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    for input_name in object_inputs:
+        tree.interface.new_socket(input_name, in_out="INPUT", socket_type="NodeSocketObject")
+    tree.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    return tree, True
+
+
 def lightmap_node_group():
     """The shared Geometry Nodes group of the modifier (made once per file). Its mesh gets the lightmap UV; its
     top-level instances get their atlas tiles as instance attributes; the instances' own geometry is left alone."""
-    existing = next((g for g in bpy.data.node_groups if g.get(OWNED_KEY) and g.bl_idname == "GeometryNodeTree"), None)
-    if existing is not None:
-        return existing
-    tree = bpy.data.node_groups.new(NODE_GROUP_NAME, "GeometryNodeTree")
-    tree[OWNED_KEY] = True
-    tree.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
-    tree.interface.new_socket(CARRIER_INPUT, in_out="INPUT", socket_type="NodeSocketObject")
-    tree.interface.new_socket(INSTANCE_TILES_INPUT, in_out="INPUT", socket_type="NodeSocketObject")
-    tree.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    tree, made = geometry_node_group(OWNED_KEY, NODE_GROUP_NAME, (CARRIER_INPUT, INSTANCE_TILES_INPUT))
+    if not made:
+        return tree
     link = tree.links.new
     group_in, group_out = _node(tree, "NodeGroupInput"), _node(tree, "NodeGroupOutput")
     parts = _node(tree, "GeometryNodeSeparateComponents")

@@ -17,6 +17,7 @@ from ..bake_directory.bake_plan import (GLOSSY_ROUGHNESS_MAX, ROUGH_METALLIC_MAX
 from .lightmap_modifier import MODIFIER_TYPES, user_modifiers
 from .stand_ins import (COPYABLE, INSTANCE_COPY_KEY, STAND_IN_TYPES, copied, copied_state, copies_of, is_copy,
                         is_stand_in, modifiers_turned_off, stand_in_of)
+from .temporary_settings import temporarily
 from .surface_shaders import COPY_KEY, LeafInputs, NeedsNodes, analyse_surface, input_constant, leaves
 
 # An environment whose luminance-weighted chroma (max-min)/max stays below this is treated as grey:
@@ -544,38 +545,33 @@ _RESOLUTIONS = {"Curve": ("resolution_u",), "TextCurve": ("resolution_u",),
                 "SurfaceCurve": ("resolution_u", "resolution_v"), "MetaBall": ("resolution",)}
 
 
-@contextlib.contextmanager
 def render_evaluation(objects):
     """Evaluate `objects` as a render does for the block: each modifier shown as for rendering, subdivision at its
     render levels, every particle and child particle a render makes, and curves, surfaces and metaballs (a
     stand-in's source too) at their render resolution (the viewport may show less). Every setting comes back
     afterwards."""
-    saved = []
-    try:
-        for obj in objects:
-            for modifier in getattr(obj, "modifiers", ()):
-                if modifier.show_viewport != modifier.show_render:
-                    saved.append((modifier, "show_viewport", modifier.show_viewport))
-                    modifier.show_viewport = modifier.show_render
-                if modifier.type in ("SUBSURF", "MULTIRES") and modifier.levels != modifier.render_levels:
-                    saved.append((modifier, "levels", modifier.levels))
-                    modifier.levels = modifier.render_levels
-                if modifier.type == "PARTICLE_SYSTEM":  # every particle and child a render makes
-                    particles = modifier.particle_system.settings
-                    for name, value in (("display_percentage", 100), ("child_percent", particles.rendered_child_count)):
-                        if getattr(particles, name) != value:
-                            saved.append((particles, name, getattr(particles, name)))
-                            setattr(particles, name, value)
-            data = obj.parent.data if is_stand_in(obj) and obj.parent is not None else obj.data
-            for name in _RESOLUTIONS.get(type(data).__name__, ()):
-                render_value = getattr(data, f"render_{name}")
-                if render_value and getattr(data, name) != render_value:  # 0: renders use the viewport's
-                    saved.append((data, name, getattr(data, name)))
-                    setattr(data, name, render_value)
-        yield
-    finally:
-        for owner, name, value in reversed(saved):
-            setattr(owner, name, value)
+    return temporarily(_render_settings(objects))
+
+
+def _render_settings(objects):
+    """(owner, setting, value) of render_evaluation, each read when the one before it is made (data shared by two
+    objects is changed once)."""
+    for obj in objects:
+        for modifier in getattr(obj, "modifiers", ()):
+            if modifier.show_viewport != modifier.show_render:
+                yield modifier, "show_viewport", modifier.show_render
+            if modifier.type in ("SUBSURF", "MULTIRES") and modifier.levels != modifier.render_levels:
+                yield modifier, "levels", modifier.render_levels
+            if modifier.type == "PARTICLE_SYSTEM":  # every particle and child a render makes
+                particles = modifier.particle_system.settings
+                for name, value in (("display_percentage", 100), ("child_percent", particles.rendered_child_count)):
+                    if getattr(particles, name) != value:
+                        yield particles, name, value
+        data = obj.parent.data if is_stand_in(obj) and obj.parent is not None else obj.data
+        for name in _RESOLUTIONS.get(type(data).__name__, ()):
+            render_value = getattr(data, f"render_{name}")
+            if render_value and getattr(data, name) != render_value:  # 0: renders use the viewport's
+                yield data, name, render_value
 
 
 def build_plan(scene, settings: BakeSettings) -> BakePlan:

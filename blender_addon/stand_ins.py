@@ -25,13 +25,13 @@ deletes the copies and puts the instancer's settings back.
 """
 from __future__ import annotations
 
-import contextlib
 import json
 
 import bpy
 from mathutils import Matrix
 
-from .lightmap_modifier import INSTANCES_OFF_KEY, lightmap_modifier
+from .lightmap_modifier import INSTANCES_OFF_KEY, geometry_node_group, lightmap_modifier
+from .temporary_settings import temporarily
 
 STAND_IN_TYPES = {"SURFACE", "META"}  # object types Blender gives no modifiers
 STAND_IN_PREFIX = "SG Lightfield stand-in: "
@@ -61,14 +61,9 @@ def stand_in_of(source):
 
 
 def _group():
-    existing = next((g for g in bpy.data.node_groups if g.get(GROUP_KEY) and g.bl_idname == "GeometryNodeTree"), None)
-    if existing is not None:
-        return existing
-    tree = bpy.data.node_groups.new(GROUP_NAME, "GeometryNodeTree")
-    tree[GROUP_KEY] = True
-    tree.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
-    tree.interface.new_socket(SOURCE_INPUT, in_out="INPUT", socket_type="NodeSocketObject")
-    tree.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    tree, made = geometry_node_group(GROUP_KEY, GROUP_NAME, (SOURCE_INPUT,))
+    if not made:
+        return tree
     group_in = tree.nodes.new("NodeGroupInput")
     source = tree.nodes.new("GeometryNodeObjectInfo")
     source.transform_space = "RELATIVE"
@@ -144,13 +139,9 @@ INSTANCES_OFF_NAME = "SG Lightfield instances off"
 
 def _instances_off_group():
     """The shared Geometry Nodes group that passes every component of a geometry but its instances."""
-    existing = next((g for g in bpy.data.node_groups if g.get(INSTANCES_OFF_KEY)), None)
-    if existing is not None:
-        return existing
-    tree = bpy.data.node_groups.new(INSTANCES_OFF_NAME, "GeometryNodeTree")
-    tree[INSTANCES_OFF_KEY] = True
-    tree.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
-    tree.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    tree, made = geometry_node_group(INSTANCES_OFF_KEY, INSTANCES_OFF_NAME)
+    if not made:
+        return tree
     parts, join = tree.nodes.new("GeometryNodeSeparateComponents"), tree.nodes.new("GeometryNodeJoinGeometry")
     tree.links.new(tree.nodes.new("NodeGroupInput").outputs[0], parts.inputs[0])
     for output in parts.outputs:
@@ -234,21 +225,12 @@ def copy_instances(scene, instancer, how, nested, entries, names, meshes=None) -
     return copies
 
 
-@contextlib.contextmanager
 def original_instancing(scene):
     """For the block: every copied instancer of `scene` instances again as the user set it up and its copies are
     hidden in renders (the bench's frame time of the instances against the copies)."""
-    changed = []
-    try:
-        for instancer in [o for o in scene.objects if copied(o)]:
-            settings = [(copy, "hide_render", True) for copy in copies_of(instancer)]
-            for owner, setting, value in settings + _instancing_settings(instancer, copied_state(instancer), on=True):
-                changed.append((owner, setting, getattr(owner, setting)))
-                setattr(owner, setting, value)
-        yield
-    finally:
-        for owner, name, value in reversed(changed):
-            setattr(owner, name, value)
+    return temporarily([change for instancer in scene.objects if copied(instancer)
+                        for change in [(copy, "hide_render", True) for copy in copies_of(instancer)]
+                        + _instancing_settings(instancer, copied_state(instancer), on=True)])
 
 
 def _uncopy(instancer) -> None:
