@@ -8,8 +8,9 @@ What it changes in the scene (``remove_lightmap_uvs`` takes all of it away again
 - every baked object gets its tile of the shared atlas as two custom properties (sglf_lightmap_offset and
   sglf_lightmap_scale: atlas_uv = offset + uv * scale), so duplicates get texels of their own;
 - a metaball or NURBS surface (no modifiers) is baked through a mesh stand-in that follows its surface
-  (stand_ins); the original is invisible to rays and probes and drawn as wire meanwhile; with the setting instance_copies,
-  particle, vertex and face instances are replaced by object copies (stand_ins), which bake as objects;
+  (stand_ins); the original is invisible to rays and probes and drawn as wire meanwhile; with the setting
+  instance_copies, particle, vertex, face, nested and node-made instances are replaced by object copies
+  (stand_ins), which bake as objects;
 - every instance gets a tile of its own too: a collection's objects are packed once into a block of tiles that
   each instancing empty gets a copy of (``sglf_lightmap_block`` on the empty: where its block is); a geometry-node
   instance's tile is a pair of instance attributes that the SG Lightmap UV modifier on its instancer writes.
@@ -175,7 +176,8 @@ def lightmap_owners(scene) -> list:
 
 def remove_lightmap_uvs(scene) -> int:
     """Undo capture's changes: drop the SGLightmap layers, SG Lightmap UV modifiers (with their carriers), tile
-    rectangles and mesh stand-ins it added. Returns the count of layers, modifiers and stand-ins removed."""
+    rectangles, mesh stand-ins and instance copies it added. Returns the count of layers, modifiers, stand-ins and
+    copies removed."""
     removed = 0
     for obj in lightmap_owners(scene):
         for key in TILE_KEYS:

@@ -487,7 +487,8 @@ def build_geometry(scene):
     pebble = _mesh_object(scene, "Pebble", _sphere(0.07, 12, 6), _principled("Obsidian", (0.04, 0.04, 0.05),
                                                                              roughness=0.15))
     pebble.hide_render = pebble.hide_viewport = True  # shown only through the particles
-    scatter = _mesh_object(scene, "Pebble Scatter", _box(0.5, 0.35, 0.01), None, Matrix.Translation((-0.45, -0.05, 0.07)))
+    scatter = _mesh_object(scene, "Pebble Scatter", _box(0.5, 0.35, 0.01), None,
+                           Matrix.Translation((-0.45, -0.05, 0.07)))
     scatter.show_instancer_for_render = False
     scatter.modifiers.new("Pebbles", "PARTICLE_SYSTEM")
     particles = scatter.particle_systems[0].settings

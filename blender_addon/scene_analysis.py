@@ -212,8 +212,8 @@ class Instanced:
             return "their geometry is made inside the node tree, not an object whose materials the bake can switch" \
                 + (hint or "; it is not a mesh, so no copy can stand in for it")
         if self.how in COPYABLE:
-            return f"{self.how} instances carry no attribute of their own for the baked material to find its texels by" \
-                + hint
+            return (f"{self.how} instances carry no attribute of their own for the baked material to find its "
+                    f"texels by{hint}")
         if self.nested:
             return "instances nested inside instances share one attribute, not one lightmap tile each" + hint
         return ""
