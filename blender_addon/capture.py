@@ -51,7 +51,7 @@ from .scene_analysis import (active_scene, bake_targets, instance_targets, insta
 from . import lightmap_modifier
 from .lightmap_modifier import user_modifiers
 from .irradiance_detail import DETAIL_FILE, bake_irradiance_detail, filled
-from .stand_ins import (STAND_IN_TYPES, copied, copy_instances, ensure_stand_in, has_stand_in,
+from .stand_ins import (STAND_IN_TYPES, copied, copy_instances, ensure_stand_in, has_stand_in, is_stand_in,
                         remove_stand_ins)
 from .surface_probe import measure_surfaces
 
@@ -108,6 +108,8 @@ def _noop_progress(fraction, message):
 
 
 def _texel_scale(obj) -> float:
+    """The object's texel-density multiplier (a stand-in's is its source's, where the user set it)."""
+    obj = obj.parent if is_stand_in(obj) and obj.parent is not None else obj
     value = obj.get(TEXEL_SCALE_KEY, 1.0)
     try:
         value = float(value)

@@ -110,7 +110,8 @@ COPIES_OF_KEY = "sglf_copies_of"  # on a collection of copies: its instancer's n
 # holds node-made geometry in a mesh of its own}
 INSTANCE_COPY_KEY = "sglf_instance_copy"
 INSTANCER_STATE_KEY = "sglf_instance_copies"  # on an instancer whose instances were copied: its own settings, JSON
-OWN_KEYS_PREFIX = "sglf_"  # the bake's properties, which a copy must not inherit from its source
+OWN_KEYS_PREFIX = "sglf_"  # the bake's properties, which a copy must not inherit from its source ...
+USER_KEYS = ("sglf_texel_scale",)  # ... but for the user's own setting among them (capture.TEXEL_SCALE_KEY)
 
 
 def is_copy(obj) -> bool:
@@ -197,7 +198,7 @@ def copy_instances(scene, instancer, how, nested, entries, names, meshes=None) -
             copy = bpy.data.objects.new(name, meshes[k])
         else:
             copy = bpy.data.objects[source].copy()  # a linked duplicate: the source's data, modifiers and slots
-        for key in [key for key in copy.keys() if key.startswith(OWN_KEYS_PREFIX)]:
+        for key in [key for key in copy.keys() if key.startswith(OWN_KEYS_PREFIX) and key not in USER_KEYS]:
             del copy[key]
         for modifier in [m for m in copy.modifiers if m.type == "PARTICLE_SYSTEM" or m == lightmap_modifier(copy)]:
             copy.modifiers.remove(modifier)  # no second generation of particles; the source's lightmap modifier

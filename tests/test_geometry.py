@@ -496,6 +496,11 @@ def test_a_metaball_and_a_nurbs_surface_bake_through_live_stand_ins_that_remove_
         moved = np.mean(_evaluated_uv(stand_ins.stand_in_of(blob))[1].reshape(-1, 3), axis=0)
     assert moved[0] - centre[0] > 0.1, (centre, moved)
     blob.data.elements[1].co.x = 0.4
+    blob["sglf_texel_scale"] = 2.0  # the user's texel scale on the metaball reaches its stand-in's tile
+    scaled = capture(scene, plan, tmp_path / "scaled")
+    texels = {o["name"]: o["texels"] for o in scaled.objects}
+    assert texels[blob.name] > 3 * next(o["texels"] for o in result.objects if o["name"] == blob.name), texels
+    del blob["sglf_texel_scale"]
     remove_bake(scene)
     assert not any(stand_ins.is_stand_in(o) for o in bpy.data.objects)
     assert not any(g.get(stand_ins.GROUP_KEY) for g in bpy.data.node_groups)
@@ -579,6 +584,8 @@ def test_particle_and_vertex_instances_bake_as_object_copies_that_remove_takes_a
     meshes_before = set(bpy.data.meshes.keys())
     before = {o.name: object_fingerprint(o) for o in owners}
     particles = by_base["Emitter"].particle_systems[0].settings
+    by_base["Pebble"]["sglf_texel_scale"] = 2.0  # the user's setting, which every copy keeps
+    before = {o.name: object_fingerprint(o) for o in owners}
     left = build_plan(scene, DRAFT)
     emitter_line = next(o for o in left.objects if base_name(o.name) == "Emitter")
     assert "left to the renderer" in emitter_line.reason and "Instances as Copies" in emitter_line.reason
@@ -602,6 +609,7 @@ def test_particle_and_vertex_instances_bake_as_object_copies_that_remove_takes_a
     made = stand_ins.copies_of(by_base["Node Spheres"])  # meshes of their own, the node tree's material on them
     assert len({c.data.name for c in made}) == 6 and all(base_name(c.data.materials[-1].name) == "chrome"
                                                          for c in made)
+    assert all(c.get("sglf_texel_scale") == 2.0 for c in stand_ins.copies_of(by_base["Emitter"]))
     for instancer, count in (("Emitter", 20), ("Holder", 8)):
         made = stand_ins.copies_of(by_base[instancer])
         assert len(made) == count and len({tuple(c[OFFSET_KEY]) for c in made}) == count  # a tile each
