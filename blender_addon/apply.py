@@ -59,8 +59,9 @@ def irradiance_from_lightfields(images: np.ndarray, normals: np.ndarray) -> np.n
     return np.einsum("tp,tpc->tc", cosine, images.reshape(len(images), -1, images.shape[-1]).astype(np.float64))
 
 
-def read_irradiance_detail(out_dir: Path, plan) -> tuple[Path | None, np.ndarray | None]:
-    """The capture's irradiance detail image (path, (H * detail, W * detail, 3) E) when the settings ask for one."""
+def read_irradiance_detail(out_dir: Path, plan, layout: str = "") -> tuple[Path | None, np.ndarray | None]:
+    """The capture's irradiance detail image (path, (H * detail, W * detail, 3) E) when the settings ask for one;
+    `layout`: the texel maps' layout hash, which the image must have been baked for."""
     detail = plan.settings.irradiance_detail
     if detail <= 1:
         return None, None
@@ -71,6 +72,9 @@ def read_irradiance_detail(out_dir: Path, plan) -> tuple[Path | None, np.ndarray
     if metadata.get("plan_hash") != plan.stage_hash("capture") or metadata.get("detail") != str(detail):
         raise BakeInputError(f"{path}: made for another capture or detail ({metadata.get('detail')}, the settings ask "
                              f"for {detail}); run the capture stage again")
+    if layout and metadata.get("layout") != layout:
+        raise BakeInputError(f"{path}: made for another lightmap layout than the texel maps' (an object's texel scale "
+                             "or geometry changed since); run the capture stage again")
     return path, irradiance
 
 
@@ -79,7 +83,7 @@ def build_packed_image(out_dir: Path, plan) -> tuple[SGTextureLayout, Path, dict
     environment's SGs and the irradiance detail image's path (None when the irradiance is a tile)."""
     atlas, texel_info = read_texel_maps(out_dir, plan.stage_hash("capture"))
     shape = atlas.shape[:2]
-    detail_path, detail = read_irradiance_detail(out_dir, plan)
+    detail_path, detail = read_irradiance_detail(out_dir, plan, texel_info.get("layout_hash", ""))
     lightfield = sg_texture_path(out_dir, "lightfield")
     encoded = bool(plan.sg_objects)  # else only irradiance lightmaps: no SG texture
     if encoded and not Path(lightfield).is_file():

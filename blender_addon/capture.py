@@ -28,6 +28,8 @@ below the real surface, and rays leaving along a smoothed normal would start ins
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 import time
 from dataclasses import asdict, dataclass, field
@@ -100,6 +102,7 @@ class CaptureResult:
     materials: list
     warnings: list = field(default_factory=list)
     surface_probe: dict = field(default_factory=dict)  # what measure_surfaces baked: objects, materials, seconds
+    layout_hash: str = ""  # where every tile and texel is (layout_hash): the irradiance detail image records it
     seconds: float = 0.0
 
 
@@ -654,7 +657,9 @@ def capture(scene, plan, out_dir, *, lightmap_uv_layer: str = "", progress=_noop
         maps["surface"], measured, probe_info = measure_surfaces(
             scene, targets, tiles, (atlas_h, atlas_w), maps["object_id"], lambda material: material.name in textured)
         maps["measured"] = measured & covered
-        detail = _irradiance_detail(scene, plan, out_dir, targets, tiles, (atlas_h, atlas_w), progress, should_cancel)
+        layout = layout_hash(tiles, maps)
+        detail = _irradiance_detail(scene, plan, out_dir, targets, tiles, (atlas_h, atlas_w), layout, progress,
+                                    should_cancel)
         progress(0.5, "push-out of texels inside geometry")
         bvh, scene_size = scene_bvh(scene, bpy.context.evaluated_depsgraph_get())  # the probes changed the scene
     rows, cols = np.nonzero(covered)
@@ -681,7 +686,7 @@ def capture(scene, plan, out_dir, *, lightmap_uv_layer: str = "", progress=_noop
     result = CaptureResult(atlas_w, atlas_h, int(np.count_nonzero(valid)),
                            round(100.0 * np.count_nonzero(valid) / (atlas_w * atlas_h), 3),
                            int(np.count_nonzero(pushed)), int(np.count_nonzero(buried)),
-                           [asdict(t) for t in tiles], materials, warnings, probe_info)
+                           [asdict(t) for t in tiles], materials, warnings, probe_info, layout)
     _write_outputs(out_dir, plan, atlas, result)
     result.seconds = time.perf_counter() - start
     update_report(out_dir, plan.stage_hash("capture"), timings_s={"capture": result.seconds}, texels=result.texels,
@@ -692,11 +697,20 @@ def capture(scene, plan, out_dir, *, lightmap_uv_layer: str = "", progress=_noop
     return result
 
 
-def _irradiance_detail(scene, plan, out_dir, targets, tiles, atlas_shape, progress, should_cancel) -> dict:
+def layout_hash(tiles, maps) -> str:
+    """What a capture's outputs depend on beyond the plan: where each tile is and where its texels and their normals
+    are (an object's texel scale, or its geometry under an unchanged plan, moves them)."""
+    digest = hashlib.sha256(json.dumps([(t.name, list(t.pixel_rect)) for t in tiles]).encode())
+    for key in ("P", "N"):
+        digest.update(np.round(maps[key], 5).astype(np.float32).tobytes())
+    return digest.hexdigest()[:16]
+
+
+def _irradiance_detail(scene, plan, out_dir, targets, tiles, atlas_shape, layout, progress, should_cancel) -> dict:
     """Bake DIR/irradiance_detail.exr when the settings ask for a detail above 1 (else remove a stale one): the diffuse
-    light of the baked surfaces at `irradiance_detail` pixels per texel. Its metadata records the capture's plan hash
-    and the detail, which the apply stage checks; a file that matches them is kept (a capture run again, as a farm's
-    last task does, or a resumed bake), as finished light-field tiles are."""
+    light of the baked surfaces at `irradiance_detail` pixels per texel. Its metadata records the capture's plan hash,
+    the lightmap layout (layout_hash) and the detail, which the apply stage checks; a file that matches them is kept
+    (a capture run again, as a farm's last task does, or a resumed bake), as finished light-field tiles are."""
     path = Path(out_dir) / DETAIL_FILE
     detail = plan.settings.irradiance_detail
     if detail <= 1 or not targets:
@@ -704,7 +718,7 @@ def _irradiance_detail(scene, plan, out_dir, targets, tiles, atlas_shape, progre
         return {"detail": 1}
     wanted = {"plan_hash": plan.stage_hash("capture"), "detail": str(detail), "samples": str(IRRADIANCE_DETAIL_SAMPLES),
               "indirect_samples": str(IRRADIANCE_INDIRECT_SAMPLES), "bounces": "the scene's, own colours",
-              "kind": "irradiance_detail"}
+              "kind": "irradiance_detail", "layout": layout}
     if path.is_file():
         try:
             found = read_exr_metadata(path)

@@ -14,7 +14,7 @@ from sg_lightfield.blender_addon.render import quiet_stdout, render_stage
 from sg_lightfield.blender_addon.scene_analysis import active_scene, build_plan
 from sg_lightfield.bake_directory.bake_plan import BakeInputError, BakeSettings
 from sg_lightfield.bake_directory.bake_report import read_report
-from sg_lightfield.bake_directory.exr_io import read_exr
+from sg_lightfield.bake_directory.exr_io import read_exr, read_exr_metadata
 from sg_lightfield.bake_directory.lightfield_tiles import read_images
 from sg_lightfield.bake_directory.texel_maps import channels, read_texel_maps
 from tests.scene_helpers import cube, lit_ortho_scene, material, mesh_fingerprint, mesh_object, scene_with
@@ -105,9 +105,10 @@ def test_the_detail_image_sharpens_a_lamp_shadow_and_agrees_with_the_light_field
 
 @pytest.mark.slow
 def test_a_capture_keeps_a_matching_detail_image_and_apply_refuses_a_stale_one(tmp_path):
-    """A second capture with the same plan keeps the finished detail image (a farm's last task runs capture again);
-    a plan asking for another detail makes apply refuse the file with the reason, until capture bakes it again."""
-    scene, _, _ = _shadow_scene()
+    """A second capture with the same plan keeps the finished detail image (a farm's last task runs capture again),
+    but not once an object's texel scale moved the layout under the same plan; a plan asking for another detail makes
+    apply refuse the file with the reason, until capture bakes it again."""
+    scene, floor, _ = _shadow_scene()
     settings = BakeSettings.from_preset("draft", texel_density=2.0, lightfield_resolution=8, samples=4,
                                         irradiance_detail=2)
     plan = build_plan(scene, settings)
@@ -116,6 +117,13 @@ def test_a_capture_keeps_a_matching_detail_image_and_apply_refuses_a_stale_one(t
     capture(scene, plan, tmp_path)
     assert (tmp_path / DETAIL_FILE).stat().st_mtime_ns == first
     assert read_report(tmp_path)["irradiance_detail"].get("kept") is True
+    floor["sglf_texel_scale"] = 2.0  # the same plan, another layout: the image is baked again, not kept
+    capture(scene, plan, tmp_path)
+    assert read_report(tmp_path)["irradiance_detail"].get("kept") is None
+    stale = read_exr_metadata(tmp_path / DETAIL_FILE)["layout"]
+    del floor["sglf_texel_scale"]
+    capture(scene, plan, tmp_path)
+    assert read_exr_metadata(tmp_path / DETAIL_FILE)["layout"] != stale
     render_stage(scene, plan, tmp_path)
     other = build_plan(scene, BakeSettings.from_preset("draft", texel_density=2.0, lightfield_resolution=8,
                                                        samples=4, irradiance_detail=3))
