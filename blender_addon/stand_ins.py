@@ -105,7 +105,8 @@ def ensure_stand_in(source):
 COPYABLE = ("particle", "vertex", "face")  # instancers whose instances carry no attribute of their own (nested and
 # node-made instances of any instancer bake as copies too: scene_analysis.Instanced.copyable)
 COPIES_PREFIX = "SG Lightfield copies: "
-COPIES_OF_KEY = "sglf_copies_of"  # on a collection of copies: its instancer's name
+COPIES_OF_KEY = "sglf_copies_of"  # on a collection of copies: its instancer's name when it was made
+COPIES_COLLECTION_KEY = "sglf_copies"  # on an instancer whose instances were copied: the collection of its copies
 # On a copy: {"source": the instanced object's name, "index": among the instancer's instances, "generated": whether it
 # holds node-made geometry in a mesh of its own}
 INSTANCE_COPY_KEY = "sglf_instance_copy"
@@ -174,7 +175,9 @@ def _instancing_settings(instancer, state, on: bool) -> list:
 
 
 def _copies_collection(instancer):
-    return next((c for c in bpy.data.collections if c.get(COPIES_OF_KEY) == instancer.name), None)
+    """The collection of `instancer`'s copies (held by reference: renaming either keeps them together), or None."""
+    collection = instancer.get(COPIES_COLLECTION_KEY)
+    return collection if isinstance(collection, bpy.types.Collection) else None
 
 
 def copies_of(instancer) -> list:
@@ -223,6 +226,7 @@ def copy_instances(scene, instancer, how, nested, entries, names, meshes=None) -
     for owner, setting, value in _instancing_settings(instancer, state, on=False):
         setattr(owner, setting, value)
     instancer[INSTANCER_STATE_KEY] = json.dumps(state)
+    instancer[COPIES_COLLECTION_KEY] = collection
     return copies
 
 
@@ -248,6 +252,8 @@ def _uncopy(instancer) -> None:
     off = _instances_off(instancer)
     if off is not None:
         instancer.modifiers.remove(off)
+    if COPIES_COLLECTION_KEY in instancer:
+        del instancer[COPIES_COLLECTION_KEY]
     for group in [g for g in bpy.data.node_groups if g.get(INSTANCES_OFF_KEY) and g.users == 0]:
         bpy.data.node_groups.remove(group)
     del instancer[INSTANCER_STATE_KEY]

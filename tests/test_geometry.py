@@ -625,7 +625,10 @@ def test_particle_and_vertex_instances_bake_as_object_copies_that_remove_takes_a
         assert not any(i.is_instance and i.parent and i.parent.original.name in (
             "Emitter", "Holder", "Table Set Instance", "Node Spheres") for i in depsgraph.object_instances)
     assert build_plan(scene, settings).content_hash() == plan.content_hash()
+    emitter = by_base["Emitter"]
+    emitter_name, emitter.name = emitter.name, "Renamed Emitter"  # the user renames it: Remove still finds its copies
     remove_bake(scene)
+    emitter.name = emitter_name
     assert not any(stand_ins.is_copy(o) for o in bpy.data.objects)
     assert not any(c.get(stand_ins.COPIES_OF_KEY) for c in bpy.data.collections)
     assert {o.name: object_fingerprint(o) for o in owners} == before
