@@ -1,4 +1,4 @@
-"""Embedded demo scenes, built by code (bpy.data + bmesh, no operators, no downloads).
+"""Embedded demo scenes, built by code (bpy.data + bmesh, no downloads; operators only for the NURBS sphere).
 
 Selectable everywhere as ``demo:NAME``: ``build_demo_scene("room")`` returns a new bpy Scene.
   spheres    Paper I Table 2: GGX roughness 0.2 / 0.3 / 0.4 / 0.5 in a row on a rough plane, lit only
