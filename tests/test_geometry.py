@@ -1,6 +1,7 @@
 """Real geometry (bpy as a module): modifier stacks stay live, text and curves bake as their evaluated meshes,
-metaballs and NURBS surfaces through mesh stand-ins, small objects and every instance get texels of their own, and
-what is not baked (instances of node-made geometry, particles) is named with a reason."""
+metaballs and NURBS surfaces through mesh stand-ins, small objects and every instance get texels of their own
+(particle, vertex, face, nested and node-made instances as object copies when asked), and what is not baked is named
+with a reason."""
 import json
 import math
 import re
