@@ -328,11 +328,13 @@ def bake_targets(scene, object_plans, depsgraph) -> list:
                or (o.instancer and bpy.data.objects.get(o.source) is None)]
     if missing:
         raise BakeInputError(f"objects {missing} of the plan are not in scene '{scene.name}'; make a new plan")
-    instancers, targets = None, []
+    instancers, copies_by_instancer, targets = None, {}, []
     for plan in object_plans:
         instancer = scene.objects.get(plan.instancer) if plan.instancer else None
         if instancer is not None and copied(instancer):  # an object copy stands in for the instance
-            copies = copies_of(instancer)
+            if plan.instancer not in copies_by_instancer:  # looked up once per instancer, not once per instance
+                copies_by_instancer[plan.instancer] = copies_of(instancer)
+            copies = copies_by_instancer[plan.instancer]
             if plan.instance >= len(copies) or copies[plan.instance][INSTANCE_COPY_KEY]["source"] != plan.source:
                 raise BakeInputError(f"'{plan.name}': the object copies of '{plan.instancer}''s instances changed "
                                      "since the plan; make a new plan")
