@@ -9,8 +9,9 @@ Writes OUT_DIR/{ENGINE}_{k}.exr for camera k (the scene camera when none is name
 "SECONDS ENGINE k seconds" per render; the first EEVEE render includes compiling the scene's shaders.
 
 --best-lighting sets EEVEE up as well as Blender allows (DESIGN section 10): screen-space ray tracing and fast GI
-on, and a volume probe over the scene (capturing emission) and a sphere probe at its centre baked with Blender's own
-light-probe bake; with the bake, it lights what the bake leaves to the renderer (glass, cut-outs, coats).
+on at full resolution and quality, ray-traced refraction for transmissive materials (glass), and a volume probe over
+the scene (capturing emission) and a sphere probe at its centre baked with Blender's own light-probe bake; with
+the bake, it lights what the bake leaves to the renderer (glass, cut-outs, coats).
 --without-bake also gives the baked slots their original materials back (the scene's bake record): EEVEE alone,
 the comparison a user makes. Only the worker's copy of the scene changes.
 """
@@ -48,11 +49,41 @@ def restore_originals(scene):
                 obj.material_slots[int(index)].material = bpy.data.materials[original]
 
 
+def transmits(material) -> bool:
+    """Whether a material's nodes (node groups included) hold a glass or refraction BSDF or a Principled BSDF with
+    transmission."""
+    def visit(tree, seen):
+        for node in tree.nodes:
+            if node.type in ("BSDF_GLASS", "BSDF_REFRACTION"):
+                return True
+            if node.type == "BSDF_PRINCIPLED":
+                weight = node.inputs.get("Transmission Weight")
+                if weight is not None and (weight.is_linked or weight.default_value > 0):
+                    return True
+            group = getattr(node, "node_tree", None)
+            if node.type == "GROUP" and group is not None and group.name not in seen:
+                seen.add(group.name)
+                if visit(group, seen):
+                    return True
+        return False
+    return material is not None and material.node_tree is not None and visit(material.node_tree, set())
+
+
 def best_lighting(scene):
-    """Ray tracing on, a volume and a sphere probe baked (see the docstring)."""
+    """Ray tracing on (refraction too, for transmissive materials), a volume and a sphere probe baked (see the
+    docstring)."""
     eevee = scene.eevee
     eevee.use_raytracing, eevee.ray_tracing_method = True, "SCREEN"
     eevee.use_fast_gi = True
+    # full resolution and quality (defaults: half resolution, quality 0.25)
+    for owner, name, value in ((eevee.ray_tracing_options, "resolution_scale", "1"),
+                               (eevee.ray_tracing_options, "screen_trace_quality", 1.0),
+                               (eevee, "fast_gi_resolution", "1"), (eevee, "fast_gi_quality", 1.0)):
+        if hasattr(owner, name):  # Blender 4.2 and later name them so
+            setattr(owner, name, value)
+    for material in bpy.data.materials:  # instanced collections' objects' too
+        if transmits(material) and hasattr(material, "use_raytrace_refraction"):
+            material.use_raytrace_refraction = True
     corners = [obj.matrix_world @ Vector(c) for obj in scene.objects if obj.type == "MESH" and not obj.hide_render
                for c in obj.bound_box]
     if not corners:  # nothing for probes to capture
