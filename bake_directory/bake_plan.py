@@ -20,6 +20,8 @@ PLAN_VERSION = 1
 # 'irradiance', the default) or keeps the renderer's own lighting ('renderer'). Rough metals have no diffuse
 # to carry their light, so they stay glossy.
 GLOSSY_ROUGHNESS_MAX = 0.6
+# in a material plan's reason: a Principled coat stays in the baked copy (surface_shaders.LeafInputs.under_coat)
+COAT_NOTE = "its coat is kept for the renderer to light, the bake lights what is below it"
 ROUGH_METALLIC_MAX = 0.5  # a rough material at least this metallic is shaded with SGs
 ROUGH_MATERIALS = ("irradiance", "renderer")
 LIGHTFIELD_RESOLUTIONS = (8, 16, 32, 64, 128)  # powers of two: training/sg_fit.SGEncoder pools them to 4 x 4
@@ -330,6 +332,9 @@ class BakePlan:
         left = sorted({m.name for o in self.objects for m in o.materials if m.reason.startswith("left to the renderer")})
         if left:
             lines.append("left to the renderer (reasons above): " + ", ".join(left))
+        coated = sorted({m.name for o in self.objects for m in o.materials if COAT_NOTE in m.reason})
+        if coated:
+            lines.append("baked below their coat, the coat kept for the renderer to light: " + ", ".join(coated))
         if self.lightmap_only_texels and self.settings.irradiance_detail > 1:
             names = ", ".join(o.name for o in self.lightmap_only_objects)
             lines.append(f"objects with lightmaps only ({names}): no light fields (the irradiance detail image holds "

@@ -215,7 +215,8 @@ def _baked_material(original, group, irradiance_group):
     """The baked copy of `original`: its own node tree with every baked BSDF replaced by an emission of the bake's
     shading (surface_shaders.rewrite_surface). The SG group takes the BSDF's own inputs (normal or bump map,
     roughness, F0 and diffuse albedo computed per pixel from base colour, metallic, IOR, specular level and tint);
-    a Diffuse BSDF shows its colour times the group's Irradiance (E / pi); a Principled BSDF's emission is kept.
+    a Diffuse BSDF shows its colour times the group's Irradiance (E / pi); a Principled BSDF's emission is kept, and
+    its coat stays for the renderer to light over the baked layers (LeafInputs.under_coat).
     An earlier copy is replaced by a fresh one (its users follow), so a re-apply starts from the user's material.
     `irradiance_group()` makes the irradiance-only group, called only when a Diffuse BSDF needs it."""
     stale = bpy.data.materials.get(original.name + COPY_SUFFIX)
@@ -252,7 +253,7 @@ def _baked_material(original, group, irradiance_group):
                     continue
                 emission = inputs.emission_of(node.outputs[output])
                 shaded = emission if shaded is None else inputs.add_shaders(shaded, emission)
-        return inputs.add_shaders(shaded, inputs.emission())
+        return inputs.under_coat(inputs.add_shaders(shaded, inputs.emission()))
 
     rewrite_surface(material, build_leaf)
     return material

@@ -8,9 +8,9 @@ Selectable everywhere as ``demo:NAME``: ``build_demo_scene("room")`` returns a n
   courtyard  objects that occlude each other under Blender's shipped courtyard HDRI.
   materials  the materials real scenes have: a checker floor with a noise roughness through Map Range and a bump
              map, an image-textured metal sphere, a Mix Shader of Diffuse and Glossy with a textured factor, a
-             Principled BSDF inside a node group behind reroutes, a glossy sign with textured emission; and what
-             the bake leaves to the renderer: a glass sphere, an alpha cut-out leaf card, a coated box; an area
-             lamp and Blender's shipped interior HDRI.
+             Principled BSDF inside a node group behind reroutes, a glossy sign with textured emission, a box
+             under a clear coat (baked below the coat); and what the bake leaves to the renderer: a glass sphere,
+             an alpha cut-out leaf card; an area lamp and Blender's shipped interior HDRI.
   geometry   what real scenes are built from, each glossy: a smooth monkey primitive, a live Bevel + Array +
              Subdivision stack, extruded text, a bevelled curve, geometry-node instances, two collection instances,
              a metaball, a NURBS sphere and particle-scattered pebbles, on a counter.

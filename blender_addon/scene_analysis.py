@@ -12,8 +12,8 @@ from dataclasses import dataclass, field
 import bpy
 import numpy as np
 
-from ..bake_directory.bake_plan import (GLOSSY_ROUGHNESS_MAX, ROUGH_METALLIC_MAX, BakeInputError, BakePlan, BakeSettings,
-                                 EnvironmentPlan, MaterialPlan, ObjectPlan, auto_sg_count)
+from ..bake_directory.bake_plan import (COAT_NOTE, GLOSSY_ROUGHNESS_MAX, ROUGH_METALLIC_MAX, BakeInputError, BakePlan,
+                                 BakeSettings, EnvironmentPlan, MaterialPlan, ObjectPlan, auto_sg_count)
 from .lightmap_modifier import MODIFIER_TYPES, user_modifiers
 from .stand_ins import (COPYABLE, INSTANCE_COPY_KEY, STAND_IN_TYPES, copied, copied_state, copies_of, is_copy,
                         is_stand_in, modifiers_turned_off, stand_in_of)
@@ -107,6 +107,8 @@ def analyse_material(material, settings: BakeSettings, surface=None) -> Material
     specular = [leaf for leaf in surface.leaves if leaf.specular]
     textured = sorted({n for leaf in surface.leaves for n in leaf.linked})
     note = f"; textured inputs ({', '.join(textured)}) read per pixel" if textured else ""
+    if any(leaf.coat for leaf in surface.leaves):
+        note += "; " + COAT_NOTE
     if any(leaf.roughness is None for leaf in specular):
         metallic = min((0.5 if leaf.metallic is None else leaf.metallic) for leaf in surface.leaves)
         return MaterialPlan(name, 0.0, metallic, True, most,
