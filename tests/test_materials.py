@@ -168,6 +168,19 @@ def _render(scene, path, samples):
     return read_exr(path, channels=["R", "G", "B"])[0].astype(np.float64)
 
 
+def _render_with(scene, obj, material, path, samples):
+    """A render with `material` in every slot of `obj` (the user's original: the path-traced reference); the slots
+    get their materials back."""
+    swapped = [(slot, slot.material) for slot in obj.material_slots]
+    for slot, _ in swapped:
+        slot.material = material
+    try:
+        return _render(scene, path, samples)
+    finally:
+        for slot, kept in swapped:
+            slot.material = kept
+
+
 def _bake(scene, tmp_path, **settings):
     settings = {"lightfield_resolution": 8, "samples": 16, "sg_count": 4, "training_budget_s": 8.0, **settings}
     plan = build_plan(scene, BakeSettings.from_preset("draft", **settings))
@@ -237,13 +250,8 @@ def test_textured_colour_roughness_and_normal_keep_driving_the_baked_copy(tmp_pa
     assert len(baked_groups(baked)) == 1
 
     ours = _render(scene, tmp_path / "ours.exr", 16)
-    swapped = [(slot, slot.material) for slot in plane.material_slots]
-    for slot, _ in swapped:
-        slot.material = mat
-    reference = _render(scene, tmp_path / "reference.exr", 256)
+    reference = _render_with(scene, plane, mat, tmp_path / "reference.exr", 256)
     # The old write-back: the same group fed the material's constants (no texture reaches it)
-    for slot, material in swapped:
-        slot.material = material
     flat = baked.copy()
     flat_group = next(n for n in flat.node_tree.nodes if n.bl_idname == "ShaderNodeGroup")
     for key in ("Normal", "Roughness", "F0", "Albedo"):
@@ -253,11 +261,7 @@ def test_textured_colour_roughness_and_normal_keep_driving_the_baked_copy(tmp_pa
     flat_group.inputs["F0"].default_value = (0.04, 0.04, 0.04, 1)
     flat_group.inputs["Albedo"].default_value = (0.8, 0.8, 0.8, 1)
     flat_group.inputs["Normal"].default_value = (0, 0, 1)
-    for slot, _ in swapped:
-        slot.material = flat
-    constant = _render(scene, tmp_path / "constant.exr", 16)
-    for slot, material in swapped:
-        slot.material = material
+    constant = _render_with(scene, plane, flat, tmp_path / "constant.exr", 16)
 
     inside = slice(6, 58)  # the plane fills the frame; leave its edges out
     luminance = [img[inside, inside] @ np.array([0.2126, 0.7152, 0.0722]) for img in (reference, ours, constant)]
@@ -309,12 +313,7 @@ def test_a_coated_surface_bakes_below_its_coat_and_keeps_the_coat_for_the_render
         baked.node_tree.links.remove(link)
     dimming.inputs["Fac"].default_value = 0.0
     base_only = _render(scene, tmp_path / "base_only.exr", 64)
-    swapped = [(slot, slot.material) for slot in sphere.material_slots]
-    for slot, _ in swapped:
-        slot.material = mat
-    reference = _render(scene, tmp_path / "reference.exr", 256)
-    for slot, material in swapped:
-        slot.material = material
+    reference = _render_with(scene, sphere, mat, tmp_path / "reference.exr", 256)
 
     y, x = np.mgrid[0:64, 0:64]
     inside = (x - 31.5) ** 2 + (y - 31.5) ** 2 < 23 ** 2  # the sphere's disc (radius 25.6 px), its edge left out
