@@ -75,14 +75,11 @@ def best_lighting(scene):
     eevee = scene.eevee
     eevee.use_raytracing, eevee.ray_tracing_method = True, "SCREEN"
     eevee.use_fast_gi = True
-    # full resolution and quality (defaults: half resolution, quality 0.25)
-    for owner, name, value in ((eevee.ray_tracing_options, "resolution_scale", "1"),
-                               (eevee.ray_tracing_options, "screen_trace_quality", 1.0),
-                               (eevee, "fast_gi_resolution", "1"), (eevee, "fast_gi_quality", 1.0)):
-        if hasattr(owner, name):  # Blender 4.2 and later name them so
-            setattr(owner, name, value)
+    options = eevee.ray_tracing_options  # full resolution and quality (defaults: half resolution, quality 0.25)
+    options.resolution_scale, options.screen_trace_quality = "1", 1.0
+    eevee.fast_gi_resolution, eevee.fast_gi_quality = "1", 1.0
     for material in bpy.data.materials:  # instanced collections' objects' too
-        if transmits(material) and hasattr(material, "use_raytrace_refraction"):
+        if transmits(material):
             material.use_raytrace_refraction = True
     corners = [obj.matrix_world @ Vector(c) for obj in scene.objects if obj.type == "MESH" and not obj.hide_render
                for c in obj.bound_box]
