@@ -161,3 +161,13 @@ def upper_hemisphere_mask(resolution: int, normal, dtype=bool):
     """(..., R, R) True where the pixel centre direction is above the plane of `normal` (..., 3)."""
     dirs = pixel_directions(resolution)
     return (np.einsum("ijk,...k->...ij", dirs, np.asarray(normal, dtype=np.float64)) > 0).astype(dtype)
+
+
+def downsample_octahedral(image: np.ndarray, resolution: int) -> np.ndarray:
+    """(R k, R k, C) -> (R, R, C), the mean of each k x k block: exact for maps rendered with a box pixel filter,
+    since an octahedral pixel is a square in the map's coordinates that its k x k sub-pixels tile."""
+    size = image.shape[0]
+    if size % resolution:
+        raise ValueError(f"an octahedral map of {size} pixels does not average down to {resolution}")
+    k = size // resolution
+    return image.reshape(resolution, k, resolution, k, -1).mean(axis=(1, 3))

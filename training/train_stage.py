@@ -44,21 +44,22 @@ class TrainResult:
 ENV_SGS_FILE = "env_sgs.json"
 ENV_SG_COUNT = 16
 FIXED_SG_COUNT = 12
-ENV_FIT_SECONDS = 10.0
 
 
 def fit_environment_sgs(out_dir: Path, plan_hash: str, device: str = "cpu") -> dict:
-    """The environment (env_radiance.exr, the whole sphere) as ENV_SG_COUNT global SGs: the node group convolves
-    them with each texel's warped NDF and multiplies by the texel's W_E. Written to DIR/env_sgs.json."""
+    """The environment (env_radiance.exr, the whole sphere) as ENV_SG_COUNT global SGs (training/env_fit.py): the
+    node group convolves them with each texel's warped NDF and multiplies by the texel's W_E. Written to
+    DIR/env_sgs.json with the fit's errors over the map it fitted."""
     from ..bake_directory.exr_io import read_exr
-    from .sg_fit import LightFieldData, TrainConfig, Trainer, error_metrics, reconstruct
+    from ..shaders.octahedral import downsample_octahedral
+    from .env_fit import ENV_FIT_RESOLUTION, fit_environment
+    from .sg_fit import error_metrics, reconstruct
 
     radiance, _, _ = read_exr(out_dir / "env_radiance.exr", channels=["R", "G", "B"])
-    data = LightFieldData.from_numpy(radiance[None], np.zeros((1, 3)), device=device)  # zero normal: whole sphere
-    trainer = Trainer(data, TrainConfig(sg_count=ENV_SG_COUNT, time_budget_s=ENV_FIT_SECONDS, learning_rate=3e-2,
-                                        batch_texels=1, device=device), mode="per_texel")
-    trainer.train()
-    axis, sharpness, amplitude = (x[0] for x in trainer.parameters_numpy())
+    sgs = fit_environment(radiance, ENV_SG_COUNT, device=device)
+    if radiance.shape[0] > ENV_FIT_RESOLUTION:
+        radiance = downsample_octahedral(radiance, ENV_FIT_RESOLUTION)
+    axis, sharpness, amplitude = (np.array([sg[k] for sg in sgs]) for k in range(3))
     metrics = error_metrics(reconstruct(axis[None], sharpness[None], amplitude[None], radiance.shape[0]), radiance[None],
                             np.zeros((1, 3)))
     data_out = {"plan_hash": plan_hash, "sgs": [[a.tolist(), float(s), m.tolist()]

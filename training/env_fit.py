@@ -1,0 +1,114 @@
+"""The environment's global SGs (what the node group convolves with each texel's lobe, times W_E).
+
+Two steps, because the two kinds of light in a real HDRI want different losses:
+  1. Compact sources (lamps, the sun, small bright windows) are taken out one at a time, brightest first
+     (`compact_sources`): each becomes one SG at the power-weighted centroid of what stands above its
+     surroundings, with the sharpness of that power's angular spread and the amplitude that keeps its power.
+     A log loss barely sees them (a lamp a hundred times brighter than the room is a few pixels of log error),
+     yet a glossy floor's reflection of them can hold most of the light it reflects.
+  2. The rest of the map, with the sources subtracted, is fitted by the light fields' log loss (sg_fit), by
+     gradient descent from directions spread evenly over the sphere.
+
+Measured on Blender's shipped interior HDRI (demo:materials' world), glossy reflections of the fitted SGs against
+quadrature of the full-resolution map: docs/design-additions.md section 42.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..shaders.octahedral import downsample_octahedral, pixel_directions, pixel_solid_angles
+from ..shaders.sg_math import SHARPNESS_MAX, SHARPNESS_MIN, sg_integral
+
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+ENV_FIT_RESOLUTION = 32  # octahedral; a finer rendered map is averaged down to it
+SOURCE_MOST = 4  # compact sources taken out at most
+SOURCE_MIN_SHARE = 0.02  # a source holds at least this share of the environment's power
+SOURCE_RADIUS_PIXELS = 2.5  # a source's neighbourhood; its surroundings are the ring out to SURROUND_PIXELS
+SURROUND_PIXELS = 4.0
+REST_STEPS = 600
+
+
+def compact_sources(radiance: np.ndarray, most: int = SOURCE_MOST, min_share: float = SOURCE_MIN_SHARE):
+    """[(axis (3,), sharpness, amplitude (3,))] for the brightest compact sources of an (R, R, 3) octahedral map,
+    and the map with them taken out (clipped at 0)."""
+    resolution = radiance.shape[0]
+    directions = pixel_directions(resolution).reshape(-1, 3)
+    solid = pixel_solid_angles(resolution).reshape(-1)
+    rest = np.maximum(np.asarray(radiance, np.float64).reshape(-1, 3), 0.0)
+    total = float((rest @ LUMINANCE * solid).sum())
+    pixel_angle = math.sqrt(4 * math.pi) / resolution
+    sources = []
+    for _ in range(most):
+        if total <= 0:
+            break
+        peak = directions[int(np.argmax(rest @ LUMINANCE))]
+        cosine = directions @ peak
+        near = cosine > math.cos(SOURCE_RADIUS_PIXELS * pixel_angle)
+        ring = (cosine > math.cos(SURROUND_PIXELS * pixel_angle)) & ~near
+        surroundings = np.median(rest[ring], axis=0) if ring.any() else np.zeros(3)
+        excess = np.maximum(rest[near] - surroundings, 0.0)
+        weight = excess @ LUMINANCE * solid[near]
+        if weight.sum() < min_share * total:
+            break
+        axis = (directions[near] * weight[:, None]).sum(axis=0)
+        axis /= np.linalg.norm(axis)
+        spread = float((weight * (1.0 - directions[near] @ axis)).sum() / weight.sum())
+        # moment matching: E[1 - cos] of a sharp SG is 1 / sharpness (the spread taken as at least a twentieth of a
+        # pixel's area)
+        sharpness = float(np.clip(1.0 / max(spread, 0.05 * pixel_angle ** 2), SHARPNESS_MIN, SHARPNESS_MAX))
+        lobe = np.exp(sharpness * (directions @ axis - 1.0))
+        # the lobe's exact integral (pixel centres would sample a lobe narrower than a pixel at random)
+        amplitude = (excess * solid[near, None]).sum(axis=0) / sg_integral(np.array(sharpness), np.ones(1))
+        rest = rest - amplitude[None] * lobe[:, None]
+        rest[near] = np.maximum(rest[near], 0.0)
+        sources.append((axis, sharpness, amplitude))
+    return sources, np.maximum(rest, 0.0).reshape(radiance.shape)
+
+
+def _fit_rest(radiance: np.ndarray, count: int, steps: int, device: str):
+    """`count` SGs fitted to an (R, R, 3) map by the light fields' log loss, from evenly spread directions."""
+    import torch
+
+    from .sg_fit import LOG_SHARPNESS_MAX, LOG_SHARPNESS_MIN
+
+    resolution = radiance.shape[0]
+    generator = torch.Generator().manual_seed(0)
+    torch_kw = dict(dtype=torch.float64, device=device)
+    directions = torch.tensor(pixel_directions(resolution).reshape(-1, 3), **torch_kw)
+    solid = torch.tensor(pixel_solid_angles(resolution).reshape(-1), **torch_kw)
+    target = torch.log1p(torch.tensor(radiance.reshape(-1, 3), **torch_kw))
+    i = np.arange(count) + 0.5
+    z, phi = 1 - 2 * i / count, i * math.pi * (3 - math.sqrt(5))  # a Fibonacci sphere
+    start = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], axis=1)
+    start += 1e-3 * torch.randn(count, 3, generator=generator, dtype=torch.float64).numpy()
+    axis = torch.tensor(start, requires_grad=True, **torch_kw)
+    log_sharpness = torch.full((count,), math.log(max(count / 2.0, 1.0)), requires_grad=True, **torch_kw)
+    mean = np.maximum(radiance.reshape(-1, 3).mean(axis=0), 1e-4)
+    log_amplitude = torch.tensor(np.log(np.tile(0.5 * mean, (count, 1))), requires_grad=True, **torch_kw)
+    optimiser = torch.optim.Adam([axis, log_sharpness, log_amplitude], lr=3e-2)
+
+    def parameters():
+        return (axis / axis.norm(dim=1, keepdim=True), torch.exp(log_sharpness.clamp(LOG_SHARPNESS_MIN, LOG_SHARPNESS_MAX)),
+                torch.exp(log_amplitude))
+
+    for _ in range(steps):
+        a, s, m = parameters()
+        prediction = (torch.exp(s[None] * (directions @ a.T - 1.0))[..., None] * m[None]).sum(dim=1)
+        loss = (solid[:, None] * (torch.log1p(prediction) - target) ** 2).sum() / (3 * solid.sum())
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+    with torch.no_grad():
+        return [(a.cpu().numpy(), float(s), m.cpu().numpy()) for a, s, m in zip(*parameters())]
+
+
+def fit_environment(radiance: np.ndarray, count: int, steps: int = REST_STEPS, device: str = "cpu"):
+    """[(axis, sharpness, rgb amplitude)] * count for an (R, R, 3) octahedral map of the environment: its compact
+    sources first, then the rest (module docstring). Maps finer than ENV_FIT_RESOLUTION are averaged down."""
+    radiance = np.nan_to_num(np.asarray(radiance, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    if radiance.shape[0] > ENV_FIT_RESOLUTION:
+        radiance = downsample_octahedral(radiance, ENV_FIT_RESOLUTION)
+    sources, rest = compact_sources(radiance, most=min(SOURCE_MOST, count - 1))
+    return sources + _fit_rest(rest, count - len(sources), steps, device)
