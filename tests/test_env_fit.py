@@ -74,3 +74,22 @@ def test_a_glossy_floor_reflects_the_lamp_with_its_light():
                 shaded.append(float(glossy[0] @ LUMINANCE))
         ratio = np.mean(shaded) / np.mean(truth)
         assert 0.8 < ratio < 1.25, (roughness, ratio)
+
+
+def test_black_uniform_and_sun_like_environments_fit_to_finite_sgs():
+    """The extremes: a black world, a uniform grey one (no sources in either), and a sun-like pixel 10^6 brighter
+    than the sky (one source holding its power, finite everywhere)."""
+    black = np.zeros((32, 32, 3))
+    grey = np.full((32, 32, 3), 0.7)
+    sun = np.full((32, 32, 3), 0.2)
+    sun[20, 11] = 2e5
+    assert compact_sources(black)[0] == [] and compact_sources(grey)[0] == []
+    for radiance in (black, grey, sun):
+        sgs = fit_environment(radiance, 16, steps=100)
+        assert len(sgs) == 16
+        assert all(np.isfinite(np.r_[a, s, m]).all() and s > 0 and (np.asarray(m) >= 0).all() for a, s, m in sgs)
+    sources, _ = compact_sources(sun)
+    sun_power = 2e5 * pixel_solid_angles(32)[20, 11]
+    assert len(sources) == 1
+    assert np.allclose(sources[0][2] * 2 * math.pi / sources[0][1], sun_power, rtol=0.1)
+    assert sources[0][0] @ pixel_directions(32)[20, 11] > math.cos(math.radians(3))
