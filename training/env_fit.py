@@ -68,19 +68,23 @@ def compact_sources(radiance: np.ndarray, most: int = SOURCE_MOST, min_share: fl
 
 
 def _fit_rest(radiance: np.ndarray, count: int, steps: int, device: str):
-    """`count` SGs fitted to an (R, R, 3) map by the light fields' log loss, from evenly spread directions."""
+    """`count` SGs fitted to an (R, R, 3) map by the light fields' log loss over the whole sphere (sg_fit's
+    lightfield_loss with a zero normal), from directions spread evenly over the sphere."""
     import torch
 
-    from .sg_fit import LOG_SHARPNESS_MAX, LOG_SHARPNESS_MIN
+    from ..shaders.quadrature import GOLDEN_ANGLE
+    from .sg_fit import LOG_SHARPNESS_MAX, LOG_SHARPNESS_MIN, lightfield_loss
 
     resolution = radiance.shape[0]
     generator = torch.Generator().manual_seed(0)
     torch_kw = dict(dtype=torch.float64, device=device)
-    directions = torch.tensor(pixel_directions(resolution).reshape(-1, 3), **torch_kw)
-    solid = torch.tensor(pixel_solid_angles(resolution).reshape(-1), **torch_kw)
-    target = torch.log1p(torch.tensor(radiance.reshape(-1, 3), **torch_kw))
+    directions = torch.tensor(pixel_directions(resolution)[None], **torch_kw)
+    solid = torch.tensor(pixel_solid_angles(resolution), **torch_kw)
+    target = torch.tensor(radiance[None], **torch_kw)
+    whole_sphere = torch.zeros(1, 3, **torch_kw)
+    # shaders.quadrature.fibonacci_sphere turned by half a golden angle: the start section 42 was measured from
     i = np.arange(count) + 0.5
-    z, phi = 1 - 2 * i / count, i * math.pi * (3 - math.sqrt(5))  # a Fibonacci sphere
+    z, phi = 1 - 2 * i / count, i * GOLDEN_ANGLE
     start = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], axis=1)
     start += 1e-3 * torch.randn(count, 3, generator=generator, dtype=torch.float64).numpy()
     axis = torch.tensor(start, requires_grad=True, **torch_kw)
@@ -94,9 +98,7 @@ def _fit_rest(radiance: np.ndarray, count: int, steps: int, device: str):
                 torch.exp(log_amplitude))
 
     for _ in range(steps):
-        a, s, m = parameters()
-        prediction = (torch.exp(s[None] * (directions @ a.T - 1.0))[..., None] * m[None]).sum(dim=1)
-        loss = (solid[:, None] * (torch.log1p(prediction) - target) ** 2).sum() / (3 * solid.sum())
+        loss, _ = lightfield_loss(tuple(x[None] for x in parameters()), target, whole_sphere, directions, solid)
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()
@@ -104,11 +106,16 @@ def _fit_rest(radiance: np.ndarray, count: int, steps: int, device: str):
         return [(a.cpu().numpy(), float(s), m.cpu().numpy()) for a, s, m in zip(*parameters())]
 
 
-def fit_environment(radiance: np.ndarray, count: int, steps: int = REST_STEPS, device: str = "cpu"):
-    """[(axis, sharpness, rgb amplitude)] * count for an (R, R, 3) octahedral map of the environment: its compact
-    sources first, then the rest (module docstring). Maps finer than ENV_FIT_RESOLUTION are averaged down."""
+def fit_map(radiance: np.ndarray) -> np.ndarray:
+    """The map the fit works on: finite, and averaged down to ENV_FIT_RESOLUTION where it is finer."""
     radiance = np.nan_to_num(np.asarray(radiance, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     if radiance.shape[0] > ENV_FIT_RESOLUTION:
         radiance = downsample_octahedral(radiance, ENV_FIT_RESOLUTION)
-    sources, rest = compact_sources(radiance, most=min(SOURCE_MOST, count - 1))
+    return radiance
+
+
+def fit_environment(radiance: np.ndarray, count: int, steps: int = REST_STEPS, device: str = "cpu"):
+    """[(axis, sharpness, rgb amplitude)] * count for an (R, R, 3) octahedral map of the environment (through
+    fit_map): its compact sources first, then the rest (module docstring)."""
+    sources, rest = compact_sources(fit_map(radiance), most=min(SOURCE_MOST, count - 1))
     return sources + _fit_rest(rest, count - len(sources), steps, device)

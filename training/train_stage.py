@@ -51,14 +51,11 @@ def fit_environment_sgs(out_dir: Path, plan_hash: str, device: str = "cpu") -> d
     node group convolves them with each texel's warped NDF and multiplies by the texel's W_E. Written to
     DIR/env_sgs.json with the fit's errors over the map it fitted."""
     from ..bake_directory.exr_io import read_exr
-    from ..shaders.octahedral import downsample_octahedral
-    from .env_fit import ENV_FIT_RESOLUTION, fit_environment
+    from .env_fit import fit_environment, fit_map
     from .sg_fit import error_metrics, reconstruct
 
-    radiance, _, _ = read_exr(out_dir / "env_radiance.exr", channels=["R", "G", "B"])
+    radiance = fit_map(read_exr(out_dir / "env_radiance.exr", channels=["R", "G", "B"])[0])
     sgs = fit_environment(radiance, ENV_SG_COUNT, device=device)
-    if radiance.shape[0] > ENV_FIT_RESOLUTION:
-        radiance = downsample_octahedral(radiance, ENV_FIT_RESOLUTION)
     axis, sharpness, amplitude = (np.array([sg[k] for sg in sgs]) for k in range(3))
     metrics = error_metrics(reconstruct(axis[None], sharpness[None], amplitude[None], radiance.shape[0]), radiance[None],
                             np.zeros((1, 3)))
