@@ -49,7 +49,7 @@ def test_a_compact_lamp_becomes_one_sg_where_it_is_with_its_power():
 
 def test_a_glossy_floor_reflects_the_lamp_with_its_light():
     """Over floor points whose mirror directions sweep past the lamp, the SG shading of the fitted environment
-    keeps the light of the quadrature of the map (a log-loss fit alone lost three quarters of it on such a lamp in
+    keeps the light of the quadrature of the map (a log-loss fit alone lost two thirds of it on such a lamp in
     demo:materials)."""
     radiance = _box_filtered_map(64)
     sgs = fit_environment(radiance, 16)
