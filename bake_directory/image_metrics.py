@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 weights of linear RGB
+
 
 def tonemap(linear: np.ndarray) -> np.ndarray:
     x = np.maximum(np.nan_to_num(np.asarray(linear, np.float64)[..., :3], nan=0.0, posinf=1e30), 0.0)

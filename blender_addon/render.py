@@ -41,6 +41,7 @@ from ..bake_directory.bake_plan import BakeInputError, drive
 from ..bake_directory.bake_report import save_png, update_report
 from ..shaders.env_visibility import env_visibility
 from ..bake_directory.exr_io import read_exr, write_exr
+from ..bake_directory.image_metrics import LUMINANCE
 from ..bake_directory.lightfield_tiles import (DEFAULT_TILE_MEGAPIXELS, TileIndex, blocks_to_images, images_to_blocks,
                                         parse_share, plan_tiles, preview_mosaic, read_preview_images,
                                         tile_is_finished, tile_samples, write_index)
@@ -56,7 +57,6 @@ ENV_RADIANCE_MIN_RESOLUTION = 64  # the environment SGs' fit wants finer than th
 MIDPOINT_SEED = 20200
 MIDPOINT_SAMPLES_FACTOR = 16
 PREVIEW_TEXELS = 16
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 TEMP_PREFIX = "SGLF render"
 GPU_BACKEND = "OPTIX"  # the light-field camera is a custom OSL camera: Cycles runs those on the CPU and OptiX only
 

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import bpy
 import numpy as np
 
+from ..bake_directory.image_metrics import LUMINANCE
 from ..bake_directory.bake_plan import (COAT_NOTE, GLOSSY_ROUGHNESS_MAX, ROUGH_METALLIC_MAX, BakeInputError, BakePlan,
                                  BakeSettings, EnvironmentPlan, MaterialPlan, ObjectPlan, auto_sg_count)
 from .lightmap_modifier import MODIFIER_TYPES, user_modifiers
@@ -501,7 +502,7 @@ def _image_chroma(image) -> float:
     rgb = rgb[np.all(np.isfinite(rgb), axis=1)]
     rgb = np.maximum(rgb, 0)
     peak = rgb.max(axis=1)
-    lum = rgb @ np.array([0.2126, 0.7152, 0.0722])
+    lum = rgb @ LUMINANCE
     valid = peak > 0
     if not np.any(valid):
         return 0.0

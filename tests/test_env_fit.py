@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 
+from sg_lightfield.bake_directory.image_metrics import LUMINANCE
 from sg_lightfield.shaders.octahedral import (downsample_octahedral, oct_decode, pixel_centers_uv, pixel_directions,
                                               pixel_solid_angles)
 from sg_lightfield.shaders.sg_math import ggx_brdf_cos
@@ -13,7 +14,6 @@ from sg_lightfield.training.env_fit import compact_sources, fit_environment
 LAMP = np.array([-0.83, 0.25, 0.5]) / np.linalg.norm([-0.83, 0.25, 0.5])
 LAMP_RADIUS = math.radians(2.0)
 LAMP_RADIANCE = np.array([300.0, 220.0, 120.0])
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
 def _room(directions):

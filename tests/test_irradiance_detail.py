@@ -15,11 +15,10 @@ from sg_lightfield.blender_addon.scene_analysis import active_scene, build_plan
 from sg_lightfield.bake_directory.bake_plan import BakeInputError, BakeSettings
 from sg_lightfield.bake_directory.bake_report import read_report
 from sg_lightfield.bake_directory.exr_io import read_exr, read_exr_metadata
+from sg_lightfield.bake_directory.image_metrics import LUMINANCE
 from sg_lightfield.bake_directory.lightfield_tiles import read_images
 from sg_lightfield.bake_directory.texel_maps import channels, read_texel_maps
 from tests.scene_helpers import cube, lit_ortho_scene, material, mesh_fingerprint, mesh_object, scene_with
-
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
 def _shadow_scene():

@@ -14,6 +14,7 @@ from sg_lightfield.blender_addon.render import quiet_stdout, render_stage
 from sg_lightfield.blender_addon.scene_analysis import active_scene, analyse_material, build_plan, enable_nodes
 from sg_lightfield.bake_directory.bake_plan import BakeSettings
 from sg_lightfield.bake_directory.exr_io import read_exr
+from sg_lightfield.bake_directory.image_metrics import LUMINANCE
 from sg_lightfield.bake_directory.texel_maps import channels, read_texel_maps
 from tests.scene_helpers import base_name, lit_ortho_scene, mesh_fingerprint, mesh_object
 
@@ -264,7 +265,7 @@ def test_textured_colour_roughness_and_normal_keep_driving_the_baked_copy(tmp_pa
     constant = _render_with(scene, plane, flat, tmp_path / "constant.exr", 16)
 
     inside = slice(6, 58)  # the plane fills the frame; leave its edges out
-    luminance = [img[inside, inside] @ np.array([0.2126, 0.7152, 0.0722]) for img in (reference, ours, constant)]
+    luminance = [img[inside, inside] @ LUMINANCE for img in (reference, ours, constant)]
     with_textures, with_constants = _correlation(luminance[0], luminance[1]), _correlation(luminance[0], luminance[2])
     assert with_textures > 0.9, (with_textures, with_constants)
     assert with_constants < with_textures - 0.2, (with_textures, with_constants)
@@ -317,7 +318,7 @@ def test_a_coated_surface_bakes_below_its_coat_and_keeps_the_coat_for_the_render
 
     y, x = np.mgrid[0:64, 0:64]
     inside = (x - 31.5) ** 2 + (y - 31.5) ** 2 < 23 ** 2  # the sphere's disc (radius 25.6 px), its edge left out
-    luminance = [img[inside] @ np.array([0.2126, 0.7152, 0.0722]) for img in (reference, ours, base_only)]
+    luminance = [img[inside] @ LUMINANCE for img in (reference, ours, base_only)]
     mean_error = [abs(v.mean() / luminance[0].mean() - 1) for v in luminance[1:]]
     rmse = [float(np.sqrt(((v - luminance[0]) ** 2).mean()) / luminance[0].mean()) for v in luminance[1:]]
     assert mean_error[0] < 0.05 and rmse[0] < 0.15, (mean_error, rmse)
@@ -502,7 +503,7 @@ def test_a_bump_mapped_glossy_metal_shows_its_highlights_where_the_bumps_tilt_it
     reference = _render(scene, tmp_path / "reference.exr", 256)
     plane.material_slots[0].material = baked
     inside = slice(6, 58)
-    luminance = [img[inside, inside] @ np.array([0.2126, 0.7152, 0.0722]) for img in (reference, ours, flat)]
+    luminance = [img[inside, inside] @ LUMINANCE for img in (reference, ours, flat)]
     with_bump, without = _correlation(luminance[0], luminance[1]), _correlation(luminance[0], luminance[2])
     assert with_bump > 0.75 and without < with_bump - 0.3, (with_bump, without)
     remove_bake(scene)

@@ -18,10 +18,10 @@ import math
 
 import numpy as np
 
+from ..bake_directory.image_metrics import LUMINANCE
 from ..shaders.octahedral import downsample_octahedral, pixel_directions, pixel_solid_angles
 from ..shaders.sg_math import SHARPNESS_MAX, SHARPNESS_MIN, sg_integral
 
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 ENV_FIT_RESOLUTION = 32  # octahedral; a finer rendered map is averaged down to it
 SOURCE_MOST = 4  # compact sources taken out at most
 SOURCE_MIN_SHARE = 0.02  # a source holds at least this share of the environment's power
