@@ -4,9 +4,13 @@ import os
 import shutil
 import tempfile
 
-# Before anything imports bpy: never touch the developer's own Blender configuration.
-if "BLENDER_USER_RESOURCES" not in os.environ:
-    os.environ["BLENDER_USER_RESOURCES"] = tempfile.mkdtemp(prefix="sglf-blender-user-")
+# Before anything imports bpy: never touch the developer's own Blender configuration. Each pytest-xdist worker
+# gets a directory of its own (tests install extensions into it), not the one its parent process made.
+_OWNER = "SGLF_TEST_USER_RESOURCES_PID"
+if "BLENDER_USER_RESOURCES" not in os.environ or os.environ.get(_OWNER, str(os.getpid())) != str(os.getpid()):
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
+    os.environ["BLENDER_USER_RESOURCES"] = tempfile.mkdtemp(prefix=f"sglf-blender-user-{worker}-")
+    os.environ[_OWNER] = str(os.getpid())
     atexit.register(shutil.rmtree, os.environ["BLENDER_USER_RESOURCES"], ignore_errors=True)
 
 # The repository is the package sg_lightfield (its modules import each other relatively; sg_launch.py).

@@ -42,7 +42,7 @@ def run_check(version: str, out: Path, extension_zip: Path | None = None) -> dic
     env = {**os.environ, "SGLF_TORCH_PYTHON": sys.executable}  # training in the project's Python with torch
     command = [str(blender_module_python(version)), str(REPO / "tests" / "blender_version_check.py"), str(out)]
     result = subprocess.run(command + ([str(extension_zip)] if extension_zip else []), capture_output=True,
-                            text=True, env=env, timeout=900, cwd=REPO)
+                            text=True, env=env, timeout=1800, cwd=REPO)
     steps = {}
     for line in result.stdout.splitlines():
         if line.startswith('{"step"'):
