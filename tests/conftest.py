@@ -17,3 +17,14 @@ if "BLENDER_USER_RESOURCES" not in os.environ or os.environ.get(_OWNER, str(os.g
 import sg_launch  # noqa: E402  (after the user-resources set-up above, which must precede bpy)
 
 sg_launch.load_package()
+
+
+# The files that take longest on a 2-core machine (pytest --durations), handed to the pytest-xdist workers first so
+# that no long file starts last (make test: --dist loadfile --no-loadscope-reorder); the rest keep their order.
+LONGEST_FIRST = ("test_apply.py", "test_materials.py", "test_blender_versions.py", "test_geometry.py", "test_farm.py",
+                 "test_operator.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
