@@ -5,6 +5,8 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-$(shell cat requirements.txt requirements-extension.txt | cksum | cut -d' ' -f1)
 DEMO_OUT ?= bake_out/spheres
 HAIR_DATA ?= hair_data
+# one test file per core, the longest first (tests/conftest.py LONGEST_FIRST)
+PYTEST_PARALLEL := -n auto --dist loadfile --no-loadscope-reorder
 
 .PHONY: demo test test-fast browser bench check-math farm-demo gpu-check extension hair-model clean
 
@@ -34,10 +36,10 @@ browser:
 	  { $$SUDO apt-get update -qq && $$SUDO apt-get install -y --no-install-recommends chromium chromium-driver; }; }
 
 test: $(STAMP) browser
-	$(PY) -m pytest -q -n auto --dist loadfile --no-loadscope-reorder
+	$(PY) -m pytest -q $(PYTEST_PARALLEL)
 
 test-fast: $(STAMP)
-	$(PY) -m pytest -q -n auto --dist loadfile --no-loadscope-reorder -m "not slow"
+	$(PY) -m pytest -q $(PYTEST_PARALLEL) -m "not slow"
 
 check-math: $(STAMP)
 	$(PY) -m shaders.check_math
