@@ -278,7 +278,7 @@ def test_texels_limited_to_fewer_sgs_fit_with_those_alone():
     data, _ = synthetic(48)
     counts = np.where(np.arange(48) < 24, 1, 2)
     limited = LightFieldData(data.images, data.normals, torch.from_numpy(counts))
-    trainer = Trainer(limited, _config(time_budget_s=20, plateau_epochs=30))
+    trainer = Trainer(limited, _config(time_budget_s=600, plateau_epochs=30))  # the plateau ends it
     trainer.train()
     _, _, m = trainer.parameters_numpy()
     assert np.all(m[:24, 1] == 0) and np.all(m[:24, 0].max(axis=-1) > 0) and np.all(m[24:, 1].max(axis=-1) > 0)
@@ -293,10 +293,10 @@ def test_plateau_waits_for_enough_optimiser_steps_then_stops():
     """A small bake has one step per epoch: the plateau window holds plateau_steps steps, not plateau_epochs epochs
     (40 one-step epochs stopped a 568-texel R = 32 bake at 21 s of a 60 s budget, far from converged)."""
     data, _ = synthetic(32)
-    trainer = Trainer(data, _config(plateau_epochs=5, plateau_steps=150, plateau_rel=0.05))
+    # The budget is far away (a loaded CI core runs this ~4x slower than an idle one): the plateau must end it.
+    trainer = Trainer(data, _config(plateau_epochs=5, plateau_steps=150, plateau_rel=0.05, time_budget_s=600))
     state = trainer.train()
     assert state.stopped_because == "plateau" and state.epoch >= 2 * 150
-    assert state.seconds[-1] < 60
 
 
 def test_glossy_error_sees_what_a_surface_of_that_roughness_reflects():

@@ -1,16 +1,17 @@
 """The environment's global SGs (what the node group convolves with each texel's lobe, times W_E).
 
 Two steps, because the two kinds of light in a real HDRI want different losses:
-  1. Compact sources (lamps, the sun, small bright windows) are taken out one at a time, brightest first
-     (`compact_sources`): each becomes one SG at the power-weighted centroid of what stands above its
-     surroundings, with the sharpness of that power's angular spread and the amplitude that keeps its power.
+  1. Compact sources (lamps and the sun, however small their share of the power) are taken out one at a time,
+     brightest first (`compact_sources`): each becomes one SG at the power-weighted centroid of what stands above
+     its surroundings, with the sharpness of that power's angular spread and the amplitude that keeps its power.
      A log loss barely sees them (a lamp a hundred times brighter than the room is a few pixels of log error),
-     yet a glossy floor's reflection of them can hold most of the light it reflects.
+     yet a glossy floor's reflection of them can hold most of the light it reflects. Broad bright patches
+     (windows, lit walls) are not sources: the log loss fits them.
   2. The rest of the map, with the sources subtracted, is fitted by the light fields' log loss (sg_fit), by
      gradient descent from directions spread evenly over the sphere.
 
 Measured on Blender's shipped interior HDRI (demo:materials' world), glossy reflections of the fitted SGs against
-quadrature of the full-resolution map: docs/design-additions.md section 42.
+quadrature of the full-resolution map: docs/design-additions.md sections 42 and 44.
 """
 from __future__ import annotations
 
@@ -24,26 +25,34 @@ from ..shaders.sg_math import SHARPNESS_MAX, SHARPNESS_MIN, sg_integral
 
 ENV_FIT_RESOLUTION = 32  # octahedral; a finer rendered map is averaged down to it
 SOURCE_MOST = 4  # compact sources taken out at most
-SOURCE_MIN_SHARE = 0.02  # a source holds at least this share of the environment's power
+SOURCE_MIN_SHARE = 0.005  # a source holds at least this share of the environment's power
+SOURCE_MIN_SHARPNESS = 150.0  # and is compact: its light's moment-matched SG this sharp (about 5 degrees rms or less)
 SOURCE_RADIUS_PIXELS = 2.5  # a source's neighbourhood; its surroundings are the ring out to SURROUND_PIXELS
 SURROUND_PIXELS = 4.0
 REST_STEPS = 600
 
 
-def compact_sources(radiance: np.ndarray, most: int = SOURCE_MOST, min_share: float = SOURCE_MIN_SHARE):
-    """[(axis (3,), sharpness, amplitude (3,))] for the brightest compact sources of an (R, R, 3) octahedral map,
-    and the map with them taken out (clipped at 0)."""
+def compact_sources(radiance: np.ndarray, most: int = SOURCE_MOST, min_share: float = SOURCE_MIN_SHARE,
+                    min_sharpness: float = SOURCE_MIN_SHARPNESS):
+    """[(axis (3,), sharpness, amplitude (3,))] for the compact sources of an (R, R, 3) octahedral map, brightest
+    first, and the map with them taken out (clipped at 0). A source is compact (its light above its surroundings has
+    a moment-matched sharpness of at least `min_sharpness`) and holds at least `min_share` of the power: a lamp or the
+    sun, however small, and not a bright window or wall, which the log loss fits."""
     resolution = radiance.shape[0]
     directions = pixel_directions(resolution).reshape(-1, 3)
     solid = pixel_solid_angles(resolution).reshape(-1)
     rest = np.maximum(np.asarray(radiance, np.float64).reshape(-1, 3), 0.0)
     total = float((rest @ LUMINANCE * solid).sum())
     pixel_angle = math.sqrt(4 * math.pi) / resolution
+    near_solid_angle = 2 * math.pi * (1 - math.cos(SOURCE_RADIUS_PIXELS * pixel_angle))
+    passed = np.zeros(len(rest), bool)  # peaks looked at and found not compact, with their neighbourhoods
     sources = []
-    for _ in range(most):
-        if total <= 0:
-            break
-        peak = directions[int(np.argmax(rest @ LUMINANCE))]
+    while len(sources) < most and total > 0:
+        luminance = rest @ LUMINANCE
+        index = int(np.argmax(np.where(passed, -1.0, luminance)))
+        if passed[index] or luminance[index] * near_solid_angle < min_share * total:
+            break  # no peak left that could hold a source's share
+        peak = directions[index]
         cosine = directions @ peak
         near = cosine > math.cos(SOURCE_RADIUS_PIXELS * pixel_angle)
         ring = (cosine > math.cos(SURROUND_PIXELS * pixel_angle)) & ~near
@@ -51,18 +60,23 @@ def compact_sources(radiance: np.ndarray, most: int = SOURCE_MOST, min_share: fl
         excess = np.maximum(rest[near] - surroundings, 0.0)
         weight = excess @ LUMINANCE * solid[near]
         if weight.sum() < min_share * total:
-            break
+            passed |= near  # too little light above its surroundings
+            continue
         axis = (directions[near] * weight[:, None]).sum(axis=0)
         axis /= np.linalg.norm(axis)
         spread = float((weight * (1.0 - directions[near] @ axis)).sum() / weight.sum())
         # moment matching: E[1 - cos] of a sharp SG is 1 / sharpness (the spread taken as at least a twentieth of a
         # pixel's area)
         sharpness = float(np.clip(1.0 / max(spread, 0.05 * pixel_angle ** 2), SHARPNESS_MIN, SHARPNESS_MAX))
+        if sharpness < min_sharpness:
+            passed |= near | ring  # a bright window or wall (its flanks too): the log loss fits it
+            continue
         lobe = np.exp(sharpness * (directions @ axis - 1.0))
         # the lobe's exact integral (pixel centres would sample a lobe narrower than a pixel at random)
         amplitude = (excess * solid[near, None]).sum(axis=0) / sg_integral(np.array(sharpness), np.ones(1))
         rest = rest - amplitude[None] * lobe[:, None]
         rest[near] = np.maximum(rest[near], 0.0)
+        passed |= near
         sources.append((axis, sharpness, amplitude))
     return sources, np.maximum(rest, 0.0).reshape(radiance.shape)
 
