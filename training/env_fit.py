@@ -1,12 +1,12 @@
 """The environment's global SGs (what the node group convolves with each texel's lobe, times W_E).
 
 Two steps, because the two kinds of light in a real HDRI want different losses:
-  1. Compact sources (lamps and the sun, however small their share of the power) are taken out one at a time,
-     brightest first (`compact_sources`): each becomes one SG at the power-weighted centroid of what stands above
-     its surroundings, with the sharpness of that power's angular spread and the amplitude that keeps its power.
-     A log loss barely sees them (a lamp a hundred times brighter than the room is a few pixels of log error),
-     yet a glossy floor's reflection of them can hold most of the light it reflects. Broad bright patches
-     (windows, lit walls) are not sources: the log loss fits them.
+  1. Compact sources are taken out one at a time (`compact_sources`): lamps and the sun however small their share
+     of the power first, then bright patches holding 2 % of it, brightest first in each. Each becomes one SG at the
+     power-weighted centroid of what stands above its surroundings, with the sharpness of that power's angular
+     spread and the amplitude that keeps its power. A log loss barely sees them (a lamp a hundred times brighter
+     than the room is a few pixels of log error), yet a glossy floor's reflection of them can hold most of the
+     light it reflects.
   2. The rest of the map, with the sources subtracted, is fitted by the light fields' log loss (sg_fit), by
      gradient descent from directions spread evenly over the sphere.
 
@@ -25,42 +25,54 @@ from ..shaders.sg_math import SHARPNESS_MAX, SHARPNESS_MIN, sg_integral
 
 ENV_FIT_RESOLUTION = 32  # octahedral; a finer rendered map is averaged down to it
 SOURCE_MOST = 4  # compact sources taken out at most
-SOURCE_MIN_SHARE = 0.005  # a source holds at least this share of the environment's power
-SOURCE_MIN_SHARPNESS = 150.0  # and is compact: its light's moment-matched SG this sharp (about 5 degrees rms or less)
+# What a source is, tier by tier: (the least share of the environment's power it holds, the least sharpness of its
+# moment-matched SG). First lamps and the sun however small (sharpness 150: about 5 degrees rms), then bright
+# patches holding 2 % of the power (a sun behind haze, a window): the log loss under-fits both.
+SOURCE_TIERS = ((0.005, 150.0), (0.02, 0.0))
 SOURCE_RADIUS_PIXELS = 2.5  # a source's neighbourhood; its surroundings are the ring out to SURROUND_PIXELS
 SURROUND_PIXELS = 4.0
 REST_STEPS = 600
 
 
-def compact_sources(radiance: np.ndarray, most: int = SOURCE_MOST, min_share: float = SOURCE_MIN_SHARE,
-                    min_sharpness: float = SOURCE_MIN_SHARPNESS):
-    """[(axis (3,), sharpness, amplitude (3,))] for the compact sources of an (R, R, 3) octahedral map, brightest
-    first, and the map with them taken out (clipped at 0). A source is compact (its light above its surroundings has
-    a moment-matched sharpness of at least `min_sharpness`) and holds at least `min_share` of the power: a lamp or the
-    sun, however small, and not a bright window or wall, which the log loss fits."""
+def compact_sources(radiance: np.ndarray, most: int = SOURCE_MOST, tiers=SOURCE_TIERS):
+    """[(axis (3,), sharpness, amplitude (3,))] for the compact sources of an (R, R, 3) octahedral map, and the map
+    with them taken out (clipped at 0). Each tier of `tiers` (SOURCE_TIERS) takes sources brightest first while
+    `most` allows: a small lamp comes before a bright window."""
     resolution = radiance.shape[0]
     directions = pixel_directions(resolution).reshape(-1, 3)
     solid = pixel_solid_angles(resolution).reshape(-1)
     rest = np.maximum(np.asarray(radiance, np.float64).reshape(-1, 3), 0.0)
     total = float((rest @ LUMINANCE * solid).sum())
-    pixel_angle = math.sqrt(4 * math.pi) / resolution
-    near_solid_angle = 2 * math.pi * (1 - math.cos(SOURCE_RADIUS_PIXELS * pixel_angle))
-    passed = np.zeros(len(rest), bool)  # peaks looked at and found not compact, with their neighbourhoods
     sources = []
-    while len(sources) < most and total > 0:
+    for min_share, min_sharpness in tiers:
+        if total <= 0:
+            break
+        found, rest = _take_sources(rest, most - len(sources), min_share * total, min_sharpness, directions, solid)
+        sources += found
+    return sources, np.maximum(rest, 0.0).reshape(radiance.shape)
+
+
+def _take_sources(rest, most, min_power, min_sharpness, directions, solid):
+    """Up to `most` sources of at least `min_power` above their surroundings and `min_sharpness`, brightest first;
+    a peak that is too broad is passed over with its surroundings (else its flanks, whose excess over a median is
+    one-sided, would look sharp)."""
+    pixel_angle = math.sqrt(4 * math.pi) / math.sqrt(len(rest))
+    near_solid_angle = 2 * math.pi * (1 - math.cos(SOURCE_RADIUS_PIXELS * pixel_angle))
+    passed = np.zeros(len(rest), bool)
+    sources = []
+    while len(sources) < most:
         luminance = rest @ LUMINANCE
         index = int(np.argmax(np.where(passed, -1.0, luminance)))
-        if passed[index] or luminance[index] * near_solid_angle < min_share * total:
-            break  # no peak left that could hold a source's share
-        peak = directions[index]
-        cosine = directions @ peak
+        if passed[index] or luminance[index] * near_solid_angle < min_power:
+            break  # no peak left that could hold a source's power
+        cosine = directions @ directions[index]
         near = cosine > math.cos(SOURCE_RADIUS_PIXELS * pixel_angle)
         ring = (cosine > math.cos(SURROUND_PIXELS * pixel_angle)) & ~near
         surroundings = np.median(rest[ring], axis=0) if ring.any() else np.zeros(3)
         excess = np.maximum(rest[near] - surroundings, 0.0)
         weight = excess @ LUMINANCE * solid[near]
-        if weight.sum() < min_share * total:
-            passed |= near  # too little light above its surroundings
+        if weight.sum() < min_power:
+            passed |= near
             continue
         axis = (directions[near] * weight[:, None]).sum(axis=0)
         axis /= np.linalg.norm(axis)
@@ -69,7 +81,7 @@ def compact_sources(radiance: np.ndarray, most: int = SOURCE_MOST, min_share: fl
         # pixel's area)
         sharpness = float(np.clip(1.0 / max(spread, 0.05 * pixel_angle ** 2), SHARPNESS_MIN, SHARPNESS_MAX))
         if sharpness < min_sharpness:
-            passed |= near | ring  # a bright window or wall (its flanks too): the log loss fits it
+            passed |= near | ring
             continue
         lobe = np.exp(sharpness * (directions @ axis - 1.0))
         # the lobe's exact integral (pixel centres would sample a lobe narrower than a pixel at random)
@@ -78,7 +90,7 @@ def compact_sources(radiance: np.ndarray, most: int = SOURCE_MOST, min_share: fl
         rest[near] = np.maximum(rest[near], 0.0)
         passed |= near
         sources.append((axis, sharpness, amplitude))
-    return sources, np.maximum(rest, 0.0).reshape(radiance.shape)
+    return sources, rest
 
 
 def _fit_rest(radiance: np.ndarray, count: int, steps: int, device: str):
