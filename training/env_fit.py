@@ -27,7 +27,7 @@ ENV_FIT_RESOLUTION = 32  # octahedral; a finer rendered map is averaged down to 
 SOURCE_MOST = 4  # compact sources taken out at most
 # What a source is, tier by tier: (the least share of the environment's power it holds, the least sharpness of its
 # moment-matched SG). First lamps and the sun however small (sharpness 150: about 5 degrees rms), then bright
-# patches holding 2 % of the power (a sun behind haze, a window): the log loss under-fits both.
+# patches holding 2 % of the power (a sun behind haze, a window; section 42's rule): the log loss under-fits both.
 SOURCE_TIERS = ((0.005, 150.0), (0.02, 0.0))
 SOURCE_RADIUS_PIXELS = 2.5  # a source's neighbourhood; its surroundings are the ring out to SURROUND_PIXELS
 SURROUND_PIXELS = 4.0
@@ -53,11 +53,13 @@ def compact_sources(radiance: np.ndarray, most: int = SOURCE_MOST, tiers=SOURCE_
 
 
 def _take_sources(rest, most, min_power, min_sharpness, directions, solid):
-    """Up to `most` sources of at least `min_power` above their surroundings and `min_sharpness`, brightest first;
-    a peak that is too broad is passed over with its surroundings (else its flanks, whose excess over a median is
-    one-sided, would look sharp)."""
+    """Up to `most` sources of at least `min_power` above their surroundings and `min_sharpness`, brightest first.
+    The compact tier (min_sharpness > 0) looks past the peaks it cannot take, a broad one with its surroundings (else
+    its flanks, whose excess over a median is one-sided, would look sharp); the patch tier stops at the first peak
+    holding too little (section 42's rule, unchanged)."""
     pixel_angle = math.sqrt(4 * math.pi) / math.sqrt(len(rest))
     near_solid_angle = 2 * math.pi * (1 - math.cos(SOURCE_RADIUS_PIXELS * pixel_angle))
+    look_past = min_sharpness > 0
     passed = np.zeros(len(rest), bool)
     sources = []
     while len(sources) < most:
@@ -72,6 +74,8 @@ def _take_sources(rest, most, min_power, min_sharpness, directions, solid):
         excess = np.maximum(rest[near] - surroundings, 0.0)
         weight = excess @ LUMINANCE * solid[near]
         if weight.sum() < min_power:
+            if not look_past:
+                break
             passed |= near
             continue
         axis = (directions[near] * weight[:, None]).sum(axis=0)
@@ -88,7 +92,7 @@ def _take_sources(rest, most, min_power, min_sharpness, directions, solid):
         amplitude = (excess * solid[near, None]).sum(axis=0) / sg_integral(np.array(sharpness), np.ones(1))
         rest = rest - amplitude[None] * lobe[:, None]
         rest[near] = np.maximum(rest[near], 0.0)
-        passed |= near
+        passed |= near & look_past
         sources.append((axis, sharpness, amplitude))
     return sources, rest
 
