@@ -14,7 +14,7 @@ from sg_lightfield.training.env_fit import compact_sources, fit_environment
 LAMP = np.array([-0.83, 0.25, 0.5]) / np.linalg.norm([-0.83, 0.25, 0.5])
 LAMP_RADIUS = math.radians(2.0)
 LAMP_RADIANCE = np.array([300.0, 220.0, 120.0])
-# demo:materials' HDRI also has a small wall lamp (under 1 % of the power) beside windows (9 % of it each, 5-15 degrees across)
+# demo:materials' HDRI also has a small wall lamp (under 1 % of the power) beside windows (9 % of it each)
 SMALL_LAMP = np.array([-0.45, 0.72, 0.53]) / np.linalg.norm([-0.45, 0.72, 0.53])
 SMALL_LAMP_RADIUS, SMALL_LAMP_RADIANCE = math.radians(1.0), np.array([40.0, 30.0, 15.0])
 WINDOW = np.array([0.95, -0.25, 0.17]) / np.linalg.norm([0.95, -0.25, 0.17])
