@@ -66,7 +66,7 @@ def _take_sources(rest, most, min_power, min_sharpness, directions, solid):
         luminance = rest @ LUMINANCE
         index = int(np.argmax(np.where(passed, -1.0, luminance)))
         if passed[index] or luminance[index] * near_solid_angle < min_power:
-            break  # no peak left that could hold a source's power
+            break  # the peak's brightness over a cap the neighbourhood's size holds too little: none left
         cosine = directions @ directions[index]
         near = cosine > math.cos(SOURCE_RADIUS_PIXELS * pixel_angle)
         ring = (cosine > math.cos(SURROUND_PIXELS * pixel_angle)) & ~near
@@ -92,7 +92,8 @@ def _take_sources(rest, most, min_power, min_sharpness, directions, solid):
         amplitude = (excess * solid[near, None]).sum(axis=0) / sg_integral(np.array(sharpness), np.ones(1))
         rest = rest - amplitude[None] * lobe[:, None]
         rest[near] = np.maximum(rest[near], 0.0)
-        passed |= near & look_past
+        if look_past:
+            passed |= near
         sources.append((axis, sharpness, amplitude))
     return sources, rest
 
