@@ -9,9 +9,10 @@ Writes OUT_DIR/{ENGINE}_{k}.exr for camera k (the scene camera when none is name
 "SECONDS ENGINE k seconds" per render; the first EEVEE render includes compiling the scene's shaders.
 
 --best-lighting sets EEVEE up as well as Blender allows (DESIGN section 10): screen-space ray tracing and fast GI
-on at full resolution and quality (the rays' temporal denoising off), ray-traced refraction for transmissive materials (glass), and a volume probe over
-the scene (capturing emission) and a sphere probe at its centre baked with Blender's own light-probe bake; with
-the bake, it lights what the bake leaves to the renderer (glass, cut-outs, the coat over a baked base).
+on at full resolution and quality (the rays' temporal denoising off), ray-traced refraction for transmissive
+materials (glass), and a volume probe over the scene (capturing emission) and a sphere probe at its centre baked
+with Blender's own light-probe bake; with the bake, it lights what the bake leaves to the renderer (glass,
+cut-outs, the coat over a baked base).
 --without-bake also gives the baked slots their original materials back (the scene's bake record): EEVEE alone,
 the comparison a user makes. Only the worker's copy of the scene changes.
 """

@@ -37,7 +37,8 @@ def pytest_collection_modifyitems(config, items):
 def remove_bakes_a_test_leaves():
     """A test that fails before its own Remove SG Bake would leave its scene baked, and the bake's shared node groups
     and images stay while any scene is baked: the next tests in the process would find them. After each test, every
-    scene the test baked (one not baked before it) has its bake removed; a module fixture's bake is its own to remove."""
+    scene the test baked (one not baked before it) has its bake removed; a module fixture's bake is its own to
+    remove."""
     baked_before = _baked_scenes()
     yield
     left = _baked_scenes() - baked_before

@@ -284,8 +284,8 @@ def test_a_coated_surface_bakes_below_its_coat_and_keeps_the_coat_for_the_render
     The plan bakes it and says the coat stays with the renderer; the baked copy holds a coat-only Principled BSDF fed
     by the coat's own inputs, over the baked lighting dimmed by the coat's Fresnel. A Cycles render of the baked copy
     matches the path-traced reference over the sphere (mean within 5 %, per-pixel relative RMSE below 0.15; measured
-    0.0003 and 0.067 at 8 texels per metre, 0.0002 and 0.066 at 16, which takes twice as long); the same bake without the coat layer (the base alone) misses the coat's reflections and is at
-    least 3x further off (measured RMSE 0.51).
+    0.0003 and 0.067 at 8 texels per metre, 0.0002 and 0.066 at 16, which takes twice as long); the same bake without
+    the coat layer (the base alone) misses the coat's reflections and is at least 3x further off (measured RMSE 0.51).
     A tinted coat is left to the renderer with its reason. Remove restores the material exactly."""
     from tests.scene_helpers import uv_sphere
 
@@ -411,8 +411,8 @@ def materials_bake(tmp_path_factory):
 @pytest.mark.slow
 def test_the_materials_demo_bakes_keeps_every_look_and_compares_with_eevee_alone(materials_bake):
     """demo:materials end to end at small settings: glass and the alpha cut-out are left to the renderer with their
-    reasons, the coated box is baked below its coat; the baked copies still read the user's textures (checker, bump, colour grid, wave
-    factor, brick emission) and the user's node group is copied, not edited; the evaluation scores EEVEE with the bake
+    reasons, the coated box is baked below its coat; the baked copies still read the user's textures (checker, bump,
+    colour grid, wave factor, brick emission) and the user's node group is copied, not edited; the evaluation scores EEVEE with the bake
     and EEVEE without it (ray tracing, baked probes) against one Cycles reference, with the three-way picture;
     Remove SG Bake restores every material and group exactly."""
     scene, job, tmp_path, errors = (materials_bake[k] for k in ("scene", "job", "out", "errors"))
