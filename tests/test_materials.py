@@ -412,9 +412,9 @@ def materials_bake(tmp_path_factory):
 def test_the_materials_demo_bakes_keeps_every_look_and_compares_with_eevee_alone(materials_bake):
     """demo:materials end to end at small settings: glass and the alpha cut-out are left to the renderer with their
     reasons, the coated box is baked below its coat; the baked copies still read the user's textures (checker, bump,
-    colour grid, wave factor, brick emission) and the user's node group is copied, not edited; the evaluation scores EEVEE with the bake
-    and EEVEE without it (ray tracing, baked probes) against one Cycles reference, with the three-way picture;
-    Remove SG Bake restores every material and group exactly."""
+    colour grid, wave factor, brick emission) and the user's node group is copied, not edited; the evaluation scores
+    EEVEE with the bake and EEVEE without it (ray tracing, baked probes) against one Cycles reference, with the
+    three-way picture; Remove SG Bake restores every material and group exactly."""
     scene, job, tmp_path, errors = (materials_bake[k] for k in ("scene", "job", "out", "errors"))
     objects = {base_name(o.name): o for o in scene.objects}  # other tests may have made a "Floor" before
     plans = {base_name(m.name): m for o in job.plan.objects for m in o.materials}
