@@ -22,6 +22,13 @@ PLAN_VERSION = 1
 GLOSSY_ROUGHNESS_MAX = 0.6
 # in a material plan's reason: a Principled coat stays in the baked copy (surface_shaders.LeafInputs.under_coat)
 COAT_NOTE = "its coat is kept for the renderer to light, the bake lights what is below it"
+# ... its alpha or Transparent BSDF cuts the baked lighting out; back faces keep the user's BSDF
+# (surface_shaders.LeafInputs.see_through)
+ALPHA_NOTE = "its alpha is kept (see-through parts show what is behind), its back faces are lit by the renderer"
+# ... shader nodes the bake does not model, mixed beside its BSDFs, stay for the renderer to light
+# (surface_shaders.RENDERER_LIT); a translucent surface is lit from both sides
+RENDERER_LIT_NOTE = "kept for the renderer to light beside the baked BSDFs"
+BACK_FACES_NOTE = "its back faces are lit by the renderer"
 ROUGH_METALLIC_MAX = 0.5  # a rough material at least this metallic is shaded with SGs
 ROUGH_MATERIALS = ("irradiance", "renderer")
 LIGHTFIELD_RESOLUTIONS = (8, 16, 32, 64, 128)  # powers of two: training/sg_fit.SGEncoder pools them to 4 x 4
@@ -63,6 +70,12 @@ PRESETS = {
 # Camera paths per second of the atlas render on this machine class (2 cores), measured by `make bench` on
 # the closed `room` (12 bounces): 0.25 M/s. Open scenes run faster (DESIGN section 4 saw 0.9 M/s).
 ATLAS_RAYS_PER_SECOND_CPU = 0.25e6
+TRAINING_BUDGET_MAX_S = 7 * 24 * 3600
+TRAINING_EPOCHS_MAX = 1_000_000
+# One planned texel through one CNN epoch at R = 16, on 2 CPU cores: demo:materials at Draft (808 planned texels, 1219
+# captured), 88 epochs of each fit (light fields, environment visibility): the train stage took 73 s, against 76 s for
+# the 30-s budget with its refits, so about 27 s of epochs. The cost grows with the light field's pixels.
+TRAIN_S_PER_TEXEL_EPOCH_CPU = 1.9e-4
 CYCLES_BYTES_PER_PIXEL = 64  # render buffers of one tile (combined pass, sample count, scratch)
 # The other stages' cost on this machine class, measured on the room Production bake (docs section 31): capture
 # 1.8 s and apply 9.5 s for 40379 texels; the refits after training 101 s (amplitudes) and 276 s (lobes, 150 steps)
@@ -106,7 +119,7 @@ STAGE_SETTINGS = {
     "capture": {"texel_density"},
     "render": {"texel_density", "lightfield_resolution", "samples", "lightmap_samples"},
     "train": {"texel_density", "lightfield_resolution", "samples", "lightmap_samples", "sg_count", "uniform_sg_count",
-              "training_budget_s", "lobe_refit_steps"},
+              "training_budget_s", "training_epochs", "lobe_refit_steps"},
 }
 # The irradiance detail image is the capture's, in a file of its own that records the detail it was baked at: changing
 # the detail bakes it again and applies again, and keeps the light fields and their training.
@@ -114,7 +127,7 @@ STAGE_SETTINGS["apply"] = STAGE_SETTINGS["evaluate"] = STAGE_SETTINGS["train"] |
 
 
 # Settings added after plan.json's first version, with the value that behaves as before they existed.
-SETTINGS_ADDED_LATER = {"irradiance_detail": 1, "instance_copies": False}
+SETTINGS_ADDED_LATER = {"irradiance_detail": 1, "instance_copies": False, "training_epochs": 0}
 
 
 class BakeInputError(ValueError):
@@ -135,6 +148,9 @@ class BakeSettings:
     sg_count: int = 8  # the most SGs a glossy material gets (0 = 16); each gets what its roughness needs, up to it
     uniform_sg_count: bool = False  # every glossy material gets sg_count SGs, whatever its roughness
     training_budget_s: float = 60.0
+    # > 0: each fit (light fields, environment visibility) trains exactly this many epochs, however long they take,
+    # so a bake comes out the same on a busy or an idle machine (a farm's nodes); 0: for training_budget_s
+    training_epochs: int = 0
     lobe_refit_steps: int = 0  # Adam steps refitting SG axes, sharpness and amplitudes through the glossy (0: off)
     rough_materials: str = "irradiance"  # rough dielectrics: an irradiance lightmap, or the renderer's own lighting
     device: str = "cpu"
@@ -168,7 +184,10 @@ class BakeSettings:
             (0 <= self.lightmap_samples <= 65536, f"lightmap samples {self.lightmap_samples} is outside 0 (= samples)"
                                                    "..65536"),
             (0 <= self.sg_count <= 64, f"SG count {self.sg_count} is outside 0 (= 16)..64"),
-            (1 <= self.training_budget_s <= 7 * 24 * 3600, f"training budget {self.training_budget_s} s is outside 1 s..7 days"),
+            (1 <= self.training_budget_s <= TRAINING_BUDGET_MAX_S,
+             f"training budget {self.training_budget_s} s is outside 1 s..7 days"),
+            (0 <= self.training_epochs <= TRAINING_EPOCHS_MAX,
+             f"training epochs {self.training_epochs} is outside 0 (= by the time budget)..{TRAINING_EPOCHS_MAX}"),
             (0 <= self.lobe_refit_steps <= 100_000, f"lobe refit steps {self.lobe_refit_steps} is outside 0..100000"),
             (self.device in ("cpu", "cuda"), f"device {self.device!r} is not 'cpu' or 'cuda'"),
             (1 <= self.irradiance_detail <= IRRADIANCE_DETAIL_MAX,
@@ -300,6 +319,16 @@ class BakePlan:
         return (self.texels * detail * detail * IRRADIANCE_DETAIL_SAMPLES * IRRADIANCE_DETAIL_PATHS_PER_SAMPLE
                 / ATLAS_RAYS_PER_SECOND_CPU)
 
+    def training_estimate_s(self) -> float:
+        """The CNN's training: the time budget, or its epochs' expected time on 2 CPU cores."""
+        epochs = self.settings.training_epochs
+        if not epochs:
+            return self.settings.training_budget_s
+        fits = 1 + int(self.environment.iwev)
+        scale = (self.settings.lightfield_resolution / 16) ** 2
+        texels = self.texels - self.lightmap_only_texels  # the texels that get SGs
+        return fits * epochs * texels * TRAIN_S_PER_TEXEL_EPOCH_CPU * scale
+
     def stage_estimates_s(self, reference_samples: int = 0, evaluate_pixels: int = 0) -> dict[str, float]:
         """Expected seconds of each stage on 2 CPU cores: the progress bar's weights, and the ETA of the stages not
         begun. evaluate_pixels: the evaluate stage's pixels over all its views."""
@@ -309,7 +338,7 @@ class BakePlan:
         refits = refitted * (AMPLITUDE_REFIT_S_PER_TEXEL + LOBE_REFIT_S_PER_TEXEL_STEP * self.settings.lobe_refit_steps)
         return {"capture": 0.5 + CAPTURE_S_PER_TEXEL * self.texels + self.irradiance_detail_estimate_s(),
                 "render": self.render_estimate_s(),
-                "train": self.settings.training_budget_s + refits,
+                "train": self.training_estimate_s() + refits,
                 "apply": 1.0 + APPLY_S_PER_TEXEL * self.texels,
                 "evaluate": EEVEE_EVALUATE_S + EVALUATE_PATHS_PER_PIXEL_SAMPLE * evaluate_pixels * reference_samples
                 / ATLAS_RAYS_PER_SECOND_CPU}
@@ -335,6 +364,12 @@ class BakePlan:
         coated = sorted({m.name for o in self.objects for m in o.materials if COAT_NOTE in m.reason})
         if coated:
             lines.append("baked below their coat, the coat kept for the renderer to light: " + ", ".join(coated))
+        cut_out = sorted({m.name for o in self.objects for m in o.materials if ALPHA_NOTE in m.reason})
+        if cut_out:
+            lines.append("baked with their alpha kept, back faces lit by the renderer: " + ", ".join(cut_out))
+        beside = sorted({m.name for o in self.objects for m in o.materials if RENDERER_LIT_NOTE in m.reason})
+        if beside:
+            lines.append("baked beside shaders the renderer lights (translucent, sheen, ...): " + ", ".join(beside))
         if self.lightmap_only_texels and self.settings.irradiance_detail > 1:
             names = ", ".join(o.name for o in self.lightmap_only_objects)
             lines.append(f"objects with lightmaps only ({names}): no light fields (the irradiance detail image holds "
@@ -380,7 +415,8 @@ class BakePlan:
                  f"env visibility {'on (' + ('RGB' if self.environment.iwev_channels == 3 else 'mono') + ')' if self.environment.iwev else 'off'}",
                  f"hair {'offered' if self.hair_objects else 'off'}",
                  f"{self.texels} texels", f"render ~{self.render_estimate_s():.0f} s",
-                 f"training <= {self.settings.training_budget_s:.0f} s"
+                 (f"training {self.settings.training_epochs} epochs (~{self.training_estimate_s():.0f} s)"
+                  if self.settings.training_epochs else f"training <= {self.settings.training_budget_s:.0f} s")
                  + (f" + {self.settings.lobe_refit_steps} lobe-refit steps" if self.settings.lobe_refit_steps else "")]
         memory = self.memory_estimate_mb()
         parts.append(f"~{memory['disk_mb']:g} MB on disk, ~{memory['ram_mb']:g} MB RAM")

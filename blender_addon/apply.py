@@ -38,8 +38,8 @@ from . import lightmap_modifier
 from .irradiance_detail import DETAIL_FILE, texel_means
 from .scene_analysis import active_scene, bake_targets
 from .capture import BLOCK_KEY, LIGHTMAP_LAYER, OFFSET_KEY, SCALE_KEY, remove_lightmap_uvs
-from .surface_shaders import (COPY_KEY, COPY_SUFFIX, LeafInputs, copy_material, remove_unused_group_copies,
-                              rewrite_surface)
+from .surface_shaders import (COPY_KEY, COPY_SUFFIX, LeafInputs, analyse_surface, copy_material,
+                              remove_unused_group_copies, rewrite_surface)
 
 BAKE_RECORD_KEY = "sglf_bake"  # on the scene: JSON {object: {slot index: original material}}
 FAKE_USER_KEY = "sglf_fake_user_set"  # on an original: we set its fake user (and clear it again)
@@ -216,7 +216,9 @@ def _baked_material(original, group, irradiance_group):
     shading (surface_shaders.rewrite_surface). The SG group takes the BSDF's own inputs (normal or bump map,
     roughness, F0 and diffuse albedo computed per pixel from base colour, metallic, IOR, specular level and tint);
     a Diffuse BSDF shows its colour times the group's Irradiance (E / pi); a Principled BSDF's emission is kept, and
-    its coat stays for the renderer to light over the baked layers (LeafInputs.under_coat).
+    its coat stays for the renderer to light over the baked layers (LeafInputs.under_coat), and its Alpha cuts the
+    baked lighting out as it cuts the BSDF; see-through materials keep the user's BSDFs on back faces
+    (LeafInputs.see_through).
     An earlier copy is replaced by a fresh one (its users follow), so a re-apply starts from the user's material.
     `irradiance_group()` makes the irradiance-only group, called only when a Diffuse BSDF needs it."""
     stale = bpy.data.materials.get(original.name + COPY_SUFFIX)
@@ -229,6 +231,7 @@ def _baked_material(original, group, irradiance_group):
         stale.user_remap(material)
         bpy.data.materials.remove(stale)
     uv_of_tree = {}
+    two_sided = analyse_surface(original).two_sided
 
     def build_leaf(tree, bsdf):
         inputs = LeafInputs(tree, bsdf)
@@ -253,7 +256,7 @@ def _baked_material(original, group, irradiance_group):
                     continue
                 emission = inputs.emission_of(node.outputs[output])
                 shaded = emission if shaded is None else inputs.add_shaders(shaded, emission)
-        return inputs.under_coat(inputs.add_shaders(shaded, inputs.emission()))
+        return inputs.see_through(inputs.under_coat(inputs.add_shaders(shaded, inputs.emission())), two_sided)
 
     rewrite_surface(material, build_leaf)
     return material

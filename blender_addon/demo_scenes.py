@@ -9,8 +9,8 @@ Selectable everywhere as ``demo:NAME``: ``build_demo_scene("room")`` returns a n
   materials  the materials real scenes have: a checker floor with a noise roughness through Map Range and a bump
              map, an image-textured metal sphere, a Mix Shader of Diffuse and Glossy with a textured factor, a
              Principled BSDF inside a node group behind reroutes, a glossy sign with textured emission, a box
-             under a clear coat (baked below the coat); and what the bake leaves to the renderer: a glass sphere,
-             an alpha cut-out leaf card; an area lamp and Blender's shipped interior HDRI.
+             under a clear coat (baked below the coat), an alpha cut-out leaf card (baked, its alpha kept); and
+             what the bake leaves to the renderer, a glass sphere; an area lamp and Blender's shipped interior HDRI.
   geometry   what real scenes are built from, each glossy: a smooth monkey primitive, a live Bevel + Array +
              Subdivision stack, extruded text, a bevelled curve, geometry-node instances, two collection instances,
              a metaball, a NURBS sphere and particle-scattered pebbles, on a counter.

@@ -28,7 +28,7 @@ import numpy as np
 from ..bake_directory.bake_plan import IRRADIANCE_DETAIL_SAMPLES, IRRADIANCE_INDIRECT_SAMPLES, BakeCancelled
 from ..bake_directory.texel_raster import dilate
 from .surface_probe import CyclesBakeSettings, bake_tile, bakes_in_place, hidden_from_rays, remove_probes
-from .surface_shaders import BAKED_BSDFS, LeafInputs, copy_material, rewrite_surface
+from .surface_shaders import BAKED_BSDFS, RENDERER_LIT, LeafInputs, copy_material, rewrite_surface
 
 DETAIL_FILE = "irradiance_detail.exr"
 DETAIL_SUFFIX = " (SG irradiance)"
@@ -36,24 +36,32 @@ DETAIL_IMAGE = "SGLF irradiance bake"
 
 
 def white_diffuse_material(original):
-    """A copy of `original` whose baked BSDFs are each, where the bake measures (a camera ray for Cycles' bake), a white
-    Diffuse BSDF with that BSDF's own normal (normal or bump map), and the BSDF itself for every other ray: light that
-    bounces off another part of the same object keeps its colour (a room modelled as one object with red, green and
-    white walls). With an active Image Texture node for the bake. Returns (material, node-group copies made for it)."""
+    """A copy of `original` whose baked BSDFs (and Transparent BSDFs) are each, where the bake measures (a camera ray
+    for Cycles' bake), a white Diffuse BSDF with that BSDF's own normal (normal or bump map), the shaders the renderer
+    lights beside them (RENDERER_LIT) nothing there, and each of them itself for every other ray: light that bounces
+    off another part of the same object keeps its colour (a room modelled as one object with red, green and white
+    walls). With an active Image Texture node for the bake. Returns (material, node-group copies made for it)."""
     material = copy_material(original, DETAIL_SUFFIX)
 
     def build_leaf(tree, node):
         inputs = LeafInputs(tree, node)
-        diffuse = inputs._new("ShaderNodeBsdfDiffuse")
-        diffuse.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
-        inputs.feed(diffuse.inputs["Normal"], inputs.normal())
+        if node.type in RENDERER_LIT:  # not the bake's: nothing where it measures (translucent light from behind)
+            diffuse = inputs._new("ShaderNodeBsdfTransparent")
+        else:
+            diffuse = inputs._new("ShaderNodeBsdfDiffuse")
+            diffuse.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
+        if "Normal" in diffuse.inputs:
+            inputs.feed(diffuse.inputs["Normal"], inputs.normal())
         where = inputs._new("ShaderNodeMixShader")
         tree.links.new(inputs._new("ShaderNodeLightPath").outputs["Is Camera Ray"], where.inputs[0])
         tree.links.new(node.outputs[0], where.inputs[1])
         tree.links.new(diffuse.outputs[0], where.inputs[2])
         return where.outputs[0]
 
-    groups = rewrite_surface(material, build_leaf, suffix=DETAIL_SUFFIX, kinds=BAKED_BSDFS)
+    # a Transparent BSDF mixed in (a cut-out) is white too where the bake measures: the light of a texel half hole is
+    # that of its opaque half, not dimmed by the hole
+    groups = rewrite_surface(material, build_leaf, suffix=DETAIL_SUFFIX,
+                             kinds=BAKED_BSDFS | RENDERER_LIT | {"BSDF_TRANSPARENT"})
     material.node_tree.nodes.active = material.node_tree.nodes.new("ShaderNodeTexImage")
     return material, groups
 

@@ -21,11 +21,12 @@ _cancel_requested = set()
 
 
 def settings_from_panel(panel) -> BakeSettings:
-    """The panel's knobs as BakeSettings: a named preset, or Custom with every knob as set."""
+    """The panel's knobs as BakeSettings: a named preset, or Custom with every knob as set. Training Epochs,
+    rough materials, instance copies and the device apply to any preset."""
     device, rough_materials = panel.device.lower(), panel.rough_materials.lower()
     if panel.preset != "CUSTOM":
         return BakeSettings.from_preset(panel.preset.lower(), device=device, rough_materials=rough_materials,
-                                        instance_copies=panel.instance_copies)
+                                        instance_copies=panel.instance_copies, training_epochs=panel.training_epochs)
     return BakeSettings.from_preset("draft", texel_density=panel.texel_density, rough_materials=rough_materials,
                                     instance_copies=panel.instance_copies,
                                     lightfield_resolution=panel.lightfield_resolution, samples=panel.samples,
@@ -33,6 +34,7 @@ def settings_from_panel(panel) -> BakeSettings:
                                     sg_count=16 if panel.sg_count_auto else panel.sg_count,
                                     uniform_sg_count=not panel.sg_count_auto,
                                     training_budget_s=panel.training_budget_s,
+                                    training_epochs=panel.training_epochs,
                                     lobe_refit_steps=panel.lobe_refit_steps, device=device,
                                     irradiance_detail=panel.irradiance_detail)
 

@@ -42,6 +42,10 @@ class SGLightfieldSettings(bpy.types.PropertyGroup):
     sg_count: IntProperty(name="SG Count", description="Spherical Gaussians per texel", default=16, min=1, max=64)
     training_budget_s: FloatProperty(name="Training Budget", description="Seconds of training at most",
                                      default=300.0, min=1.0, subtype="TIME_ABSOLUTE", unit="TIME_ABSOLUTE")
+    training_epochs: IntProperty(name="Training Epochs",
+                                 description="Train exactly this many epochs, however long they take, instead of "
+                                 "the time budget: the same bake on any machine (0: by the time budget)",
+                                 default=0, min=0, soft_max=2000, max=1_000_000)
     lobe_refit_steps: IntProperty(name="Lobe Refit Steps",
                                   description="Steps refitting the SGs' axes, sharpness and amplitudes through the "
                                   "glossy shading after training (0: off; every preset uses 150)",

@@ -13,8 +13,9 @@ import bpy
 import numpy as np
 
 from ..bake_directory.image_metrics import LUMINANCE
-from ..bake_directory.bake_plan import (COAT_NOTE, GLOSSY_ROUGHNESS_MAX, ROUGH_METALLIC_MAX, BakeInputError, BakePlan,
-                                 BakeSettings, EnvironmentPlan, MaterialPlan, ObjectPlan, auto_sg_count)
+from ..bake_directory.bake_plan import (ALPHA_NOTE, BACK_FACES_NOTE, COAT_NOTE, GLOSSY_ROUGHNESS_MAX,
+                                        RENDERER_LIT_NOTE, ROUGH_METALLIC_MAX, BakeInputError, BakePlan, BakeSettings,
+                                        EnvironmentPlan, MaterialPlan, ObjectPlan, auto_sg_count)
 from .lightmap_modifier import MODIFIER_TYPES, user_modifiers
 from .stand_ins import (COPYABLE, INSTANCE_COPY_KEY, STAND_IN_TYPES, copied, copied_state, copies_of, is_copy,
                         is_stand_in, modifiers_turned_off, stand_in_of)
@@ -103,6 +104,7 @@ def analyse_material(material, settings: BakeSettings, surface=None) -> Material
     if not surface.leaves:
         return MaterialPlan(name, 1.0, 0.0, False, 0,
                             "emission only: not baked, its emission is the light it shows" if surface.emissive
+                            else "only a Transparent BSDF: not baked, it shows what is behind" if surface.transparent
                             else "no BSDF in its surface (holdout): not baked")
     most = settings.sg_count or 16
     specular = [leaf for leaf in surface.leaves if leaf.specular]
@@ -110,6 +112,12 @@ def analyse_material(material, settings: BakeSettings, surface=None) -> Material
     note = f"; textured inputs ({', '.join(textured)}) read per pixel" if textured else ""
     if any(leaf.coat for leaf in surface.leaves):
         note += "; " + COAT_NOTE
+    if surface.see_through:
+        note += "; " + ALPHA_NOTE
+    elif surface.two_sided:
+        note += "; " + BACK_FACES_NOTE
+    if surface.renderer_lit:
+        note += "; " + ", ".join(surface.renderer_lit) + " " + RENDERER_LIT_NOTE
     if any(leaf.roughness is None for leaf in specular):
         metallic = min((0.5 if leaf.metallic is None else leaf.metallic) for leaf in surface.leaves)
         return MaterialPlan(name, 0.0, metallic, True, most,

@@ -6,7 +6,9 @@ swapped for probe copies of their materials in which every baked BSDF is replace
 computed from the BSDF's own inputs (surface_shaders.LeafInputs, the same nodes the baked copy shades with), and an
 EMIT bake with the lightmap layer writes it into an image of the object's atlas tile. PROBE_SAMPLES jittered samples
 per texel average the texture over the texel's footprint. Mix Shader factors blend the quantities as they blend the
-BSDFs. Slots, selection and render settings are restored before returning, also on errors; the probes are removed.
+BSDFs, and each texel's values are divided by the BSDFs' share of its surface (the rest is emission, holdout or
+transparency). Slots, selection and render settings are restored before returning, also on errors; the probes are
+removed.
 """
 from __future__ import annotations
 
@@ -16,14 +18,18 @@ import time
 import bpy
 import numpy as np
 
-from .surface_shaders import BAKED_BSDFS, KEPT_SHADERS, LeafInputs, copy_material, rewrite_surface
+from .surface_shaders import BAKED_BSDFS, KEPT_SHADERS, RENDERER_LIT, LeafInputs, copy_material, rewrite_surface
 from .scene_analysis import quiet_stdout, unbaked
 
 PROBE_SUFFIX = " (SG probe)"
 PROBE_IMAGE = "SGLF surface probe"
 PROBE_SAMPLES = 16
 EDGE_MARGIN = 3  # texels: the capture's gutter (UV_PADDING) and one more
-# Three bakes, three colour channels each: (roughness, metallic, -), base colour, F0. Texel-map channel order.
+# Three bakes, three colour channels each: (roughness, metallic, weight), base colour, F0. Texel-map channel order.
+# The weight is the baked BSDFs' share of the surface (Mix Shader factors with emission, holdout or a Transparent
+# BSDF, which emit nothing in the probes): every quantity is divided by it, and a texel the BSDFs do not cover (in
+# the holes of a cut-out) takes the mean of the object's covered texels.
+MIN_WEIGHT = 0.01
 PASSES = ("roughness_metallic", "base", "f0")
 SURFACE_CHANNELS = 8  # roughness, metallic, base RGB, F0 RGB
 
@@ -33,20 +39,22 @@ def _quantity(inputs: LeafInputs, name: str):
         combine = inputs._new("ShaderNodeCombineColor")
         inputs.feed(combine.inputs[0], inputs.roughness())
         inputs.feed(combine.inputs[1], inputs.metallic())
-        combine.inputs[2].default_value = 0.0
+        combine.inputs[2].default_value = 1.0  # the weight
         return combine.outputs[0]
     return inputs.base_colour() if name == "base" else inputs.f0()
 
 
-def probe_material(original, suffix: str, emit, kinds=BAKED_BSDFS | KEPT_SHADERS):
+def probe_material(original, suffix: str, emit,
+                   kinds=BAKED_BSDFS | RENDERER_LIT | (KEPT_SHADERS - {"BSDF_TRANSPARENT"})):
     """A copy of `original` (named NAME + suffix) whose shaders of `kinds` are each replaced by an Emission of
-    emit(LeafInputs, node) (a socket or a constant colour), with an active Image Texture node for a bake to write
-    into. Returns (material, the node-group copies made for it)."""
+    emit(LeafInputs, node) (a socket or a constant colour), cut out by a Principled BSDF's Alpha as the BSDF is; a
+    Transparent BSDF stays (it emits nothing, and a camera sees through it). With an active Image Texture node for a
+    bake to write into. Returns (material, the node-group copies made for it)."""
     material = copy_material(original, suffix)
 
     def build_leaf(tree, node):
         inputs = LeafInputs(tree, node)
-        return inputs.emission_of(emit(inputs, node))
+        return inputs.cut_out(inputs.emission_of(emit(inputs, node)))
 
     groups = rewrite_surface(material, build_leaf, suffix=suffix, kinds=kinds)
     material.node_tree.nodes.active = material.node_tree.nodes.new("ShaderNodeTexImage")
@@ -54,9 +62,10 @@ def probe_material(original, suffix: str, emit, kinds=BAKED_BSDFS | KEPT_SHADERS
 
 
 def _probe_material(original, name: str):
-    """The probe of one PASSES quantity: baked BSDFs emit it, the material's own emitters emit nothing."""
+    """The probe of one PASSES quantity: baked BSDFs emit it, the material's own emitters and the shaders the renderer
+    lights emit nothing."""
     return probe_material(original, f"{PROBE_SUFFIX} {name}",
-                          lambda inputs, node: (0.0, 0.0, 0.0) if node.type in KEPT_SHADERS else _quantity(inputs, name))
+                          lambda inputs, node: _quantity(inputs, name) if node.type in BAKED_BSDFS else (0.0, 0.0, 0.0))
 
 
 def bake_tile(scene, target, tile, image, material_for_slot, *, bake_type="EMIT", pass_filter=frozenset(),
@@ -201,14 +210,22 @@ def measure_surfaces(scene, targets, tiles, atlas_shape, object_ids, should_meas
             for target, tile in chosen:
                 x, y, w, h = tile.pixel_rect
                 mine = object_ids[y:y + h, x:x + w] == tile.id
+                holes = mine.copy()
                 block = values[y:y + h, x:x + w]
                 for k, name in enumerate(PASSES):
                     baked = bake_tile(scene, target, tile, image, probe_for(name))[..., :3]
                     if k == 0:
-                        block[mine, 0:2] = baked[mine][:, :2]
+                        weight = baked[..., 2]
+                        mine &= weight > MIN_WEIGHT
+                    baked = baked[mine] / weight[mine, None]
+                    if k == 0:
+                        block[mine, 0:2] = baked[:, :2]
                     else:
-                        block[mine, 3 * k - 1:3 * k + 2] = baked[mine]
-                measured[y:y + h, x:x + w] |= mine
+                        block[mine, 3 * k - 1:3 * k + 2] = baked
+                holes &= ~mine
+                if mine.any():  # a texel wholly in a hole (never seen) gets the object's mean
+                    block[holes] = block[mine].mean(axis=0)
+                    measured[y:y + h, x:x + w] |= mine | holes
     finally:
         remove_probes(probes.values(), created_groups, image)
     np.clip(values, 0.0, 1.0, out=values)

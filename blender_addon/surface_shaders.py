@@ -3,9 +3,16 @@
 A surface is a tree of shader nodes below a Material Output's Surface input: Mix and Add Shader nodes, reroutes and
 node groups join its leaves. `analyse_surface` walks it and sorts every leaf:
 - baked BSDFs (Principled, Diffuse, Glossy, Metallic): their lighting can come from the bake;
-- kept shaders (Emission, Holdout): they show themselves, the bake adds nothing to them;
-- anything else (glass, transmission, subsurface, translucent, transparent or alpha, sheen, toon, a tinted coat, ...):
-  the whole material is left to the renderer, with the reason.
+- kept shaders (Emission, Holdout, Transparent BSDF): they show themselves, the bake adds nothing to them;
+- shader nodes the bake does not model (Translucent, Sheen, Subsurface Scattering, Glass, Refraction, Toon): mixed
+  or added beside baked BSDFs (a leaf's Principled and Translucent BSDFs), they stay in the baked copy for the renderer
+  to light, and the plan names them; alone, the material is left to the renderer;
+- anything else (Principled transmission, subsurface or sheen, a tinted coat, hair, ...): the whole material is left to
+  the renderer, with the reason.
+See-through surfaces (a cut-out leaf, a decal, a half-transparent sheet) are baked: a Principled BSDF's Alpha is kept
+in the baked copy as Blender defines it, a mix with a Transparent BSDF, and a Transparent BSDF the user mixed in stays
+(LeafInputs.see_through). The bake lights the opaque part, the renderer shows what is behind; back faces, which the
+bake's texels do not see, keep the user's BSDFs for the renderer to light.
 A Principled BSDF's coat (untinted) is kept in the baked copy as a coat-only Principled BSDF for the renderer to
 light; the bake lights the layers below it, dimmed by the coat's Fresnel (LeafInputs.under_coat).
 
@@ -23,11 +30,10 @@ from dataclasses import dataclass, field
 import bpy
 
 BAKED_BSDFS = {"BSDF_PRINCIPLED", "BSDF_DIFFUSE", "BSDF_GLOSSY", "BSDF_ANISOTROPIC", "BSDF_METALLIC"}
-KEPT_SHADERS = {"EMISSION", "HOLDOUT"}
+KEPT_SHADERS = {"EMISSION", "HOLDOUT", "BSDF_TRANSPARENT"}
 RENDERER_SHADERS = {  # shader node type -> why the bake leaves the material to the renderer
     "BSDF_GLASS": "glass (light passes through: not a hemisphere of incoming light)",
     "BSDF_REFRACTION": "refraction (light passes through)",
-    "BSDF_TRANSPARENT": "transparent BSDF (see-through)",
     "BSDF_TRANSLUCENT": "translucent BSDF (lit from behind)",
     "SUBSURFACE_SCATTERING": "subsurface scattering (light travels under the surface)",
     "BSDF_SHEEN": "sheen BSDF (not modelled)",
@@ -38,6 +44,11 @@ RENDERER_SHADERS = {  # shader node type -> why the bake leaves the material to 
     "BSDF_RAY_PORTAL": "ray portal",
     "BACKGROUND": "background shader on a surface",
 }
+# separate shader nodes the renderer lights where they are mixed or added beside baked BSDFs (the mix is linear: the
+# baked part and the renderer's part add up as the user's material does)
+RENDERER_LIT = {"BSDF_TRANSLUCENT", "BSDF_SHEEN", "SUBSURFACE_SCATTERING", "BSDF_GLASS", "BSDF_REFRACTION", "BSDF_TOON"}
+# light from behind: a thin, two-sided surface (LeafInputs.see_through's back-face rule)
+TWO_SIDED = {"BSDF_TRANSPARENT", "BSDF_TRANSLUCENT"}
 # Principled inputs whose use the bake does not model: (input, value above which it is in use, reason)
 PRINCIPLED_RENDERER_INPUTS = (
     ("Transmission Weight", 0.0, "transmission (glass)"),
@@ -59,6 +70,7 @@ class Leaf:
     specular: bool  # has a specular lobe (Principled, Glossy, Metallic)
     linked: list[str] = field(default_factory=list)  # inputs driven by links
     coat: bool = False  # a Principled coat: the renderer lights it, the bake what is below (LeafInputs.under_coat)
+    see_through: bool = False  # a Principled Alpha below 1 or textured: kept in the baked copy (LeafInputs.see_through)
 
 
 @dataclass
@@ -66,6 +78,13 @@ class SurfaceAnalysis:
     leaves: list[Leaf] = field(default_factory=list)
     renderer_reasons: list[str] = field(default_factory=list)  # why the renderer keeps the whole material
     emissive: bool = False
+    transparent: bool = False  # a Transparent BSDF in the surface (LeafInputs.see_through)
+    renderer_lit: list[str] = field(default_factory=list)  # RENDERER_LIT nodes beside the baked BSDFs: what they are
+    two_sided: bool = False  # a Transparent or Translucent BSDF: seen and lit from both sides
+
+    @property
+    def see_through(self) -> bool:
+        return self.transparent or any(leaf.see_through for leaf in self.leaves)
 
 
 def _link(socket):
@@ -170,11 +189,10 @@ def _leaf(node, stack=()) -> tuple[Leaf | None, list[str]]:
         if coated and (tint_linked or any(abs(c - 1.0) > 1e-6 for c in tint[:3])):
             reasons.append(f"'{node.name}': coat tint (colours the layers below the coat: not modelled)")
         alpha, alpha_linked = constant("Alpha", 1.0)
-        if alpha_linked or alpha < 1.0:
-            reasons.append(f"'{node.name}': alpha below 1 or textured (cut-out or blended: see-through)")
         roughness, _ = constant("Roughness")
         metallic, _ = constant("Metallic")
-        return (None if reasons else Leaf(kind, node.name, roughness, metallic, True, linked, coated)), reasons
+        leaf = Leaf(kind, node.name, roughness, metallic, True, linked, coated, alpha_linked or alpha < 1.0)
+        return (None if reasons else leaf), reasons
     if kind == "BSDF_DIFFUSE":
         return Leaf(kind, node.name, 1.0, 0.0, False, linked), reasons
     if kind in ("BSDF_GLOSSY", "BSDF_ANISOTROPIC"):
@@ -212,6 +230,8 @@ def analyse_surface(material) -> SurfaceAnalysis:
                 strength, strength_linked = input_constant(node, "Strength", 0.0)
                 color, color_linked = input_constant(node, "Color", (0.0, 0.0, 0.0, 1.0))
                 result.emissive |= (strength_linked or strength > 0) and (color_linked or max(color[:3]) > 0)
+            result.transparent |= node.type == "BSDF_TRANSPARENT"
+            result.two_sided |= node.type in TWO_SIDED
         elif node.type in BAKED_BSDFS:
             leaf, reasons = _leaf(node, stack)
             result.renderer_reasons += reasons
@@ -221,12 +241,18 @@ def analyse_surface(material) -> SurfaceAnalysis:
                 strength, strength_linked = input_constant(node, "Emission Strength", 0.0)
                 color, color_linked = input_constant(node, "Emission Color", (0.0, 0.0, 0.0, 1.0))
                 result.emissive |= (strength_linked or strength > 0) and (color_linked or max(color[:3]) > 0)
+        elif node.type in RENDERER_LIT:
+            result.renderer_lit.append(f"'{node.name}': {RENDERER_SHADERS[node.type]}")
+            result.two_sided |= node.type in TWO_SIDED
         else:
             reason = RENDERER_SHADERS.get(node.type, f"unsupported node '{node.bl_idname}' in the surface")
             result.renderer_reasons.append(f"'{node.name}': {reason}")
 
     for output in outputs:
         walk_surface(tree, output.inputs["Surface"], on_leaf, lambda group_node: group_node.node_tree)
+    if result.renderer_lit and not result.leaves:  # nothing to bake beside them: the renderer keeps the material
+        result.renderer_reasons += result.renderer_lit
+        result.renderer_lit = []
     result.renderer_reasons = list(dict.fromkeys(result.renderer_reasons))
     return result
 
@@ -473,6 +499,33 @@ class LeafInputs:
         self.feed(below.inputs["Fac"], self.math("MULTIPLY", fresnel.outputs[0], weight))
         self.tree.links.new(shader, below.inputs[1])
         return self.add_shaders(below.outputs[0], coat.outputs[0])
+
+    def cut_out(self, shader):
+        """`shader` (standing in for a BSDF) with a Principled BSDF's own Alpha as Blender applies it: a mix with a
+        Transparent BSDF, alpha the share of `shader`. Without an alpha (unlinked, 1), `shader` unchanged."""
+        alpha = self.source("Alpha", 1.0) if self.node.type == "BSDF_PRINCIPLED" else 1.0
+        if not hasattr(alpha, "is_linked") and alpha >= 1.0:
+            return shader
+        cut = self._new("ShaderNodeMixShader")
+        self.feed(cut.inputs["Fac"], alpha)
+        self.tree.links.new(self._new("ShaderNodeBsdfTransparent").outputs[0], cut.inputs[1])
+        self.tree.links.new(shader, cut.inputs[2])
+        return cut.outputs[0]
+
+    def see_through(self, shader, two_sided: bool = False):
+        """`shader` (a BSDF's baked lighting) cut out by the BSDF's Alpha (cut_out); then, with an alpha or
+        `two_sided` (the material mixes in a Transparent or Translucent BSDF), the user's BSDF itself on back faces,
+        which the renderer lights (the bake's texels see the front's hemisphere only: a leaf card lit from behind is
+        not lit from in front). Otherwise `shader` unchanged."""
+        cut = self.cut_out(shader)
+        if cut is shader and not two_sided:
+            return shader
+        shader = cut
+        sides = self._new("ShaderNodeMixShader")
+        self.tree.links.new(self._new("ShaderNodeNewGeometry").outputs["Backfacing"], sides.inputs["Fac"])
+        self.tree.links.new(shader, sides.inputs[1])
+        self.tree.links.new(self.node.outputs[0], sides.inputs[2])
+        return sides.outputs[0]
 
     def add_shaders(self, a, b):
         if b is None:

@@ -21,9 +21,12 @@ def draw_sg_lightfield(layout, context):
     sub = col.column()
     sub.enabled = not settings.sg_count_auto
     sub.prop(settings, "sg_count")
-    col.prop(settings, "training_budget_s")
+    sub = col.column()
+    sub.enabled = settings.training_epochs == 0
+    sub.prop(settings, "training_budget_s")
     col.prop(settings, "lobe_refit_steps")
     col.prop(settings, "irradiance_detail")
+    layout.prop(settings, "training_epochs")  # any preset: a fixed count instead of its time budget
     layout.prop(settings, "rough_materials")
     layout.prop(settings, "instance_copies")
     layout.prop(settings, "device")

@@ -35,9 +35,9 @@ def script_args(argv: list[str]) -> list[str]:
 
 
 SETTINGS_FILE_OPTIONS = ("preset", "texel-density", "lightfield-resolution", "samples", "lightmap-samples", "sg-count",
-                         "uniform-sg-count", "training-budget", "lobe-refit-steps", "irradiance-detail",
-                         "rough-materials", "instance-copies", "device", "midpoints", "reference-samples",
-                         "tile-megapixels", "external-images", "lightmap-uv")
+                         "uniform-sg-count", "training-budget", "training-epochs", "lobe-refit-steps",
+                         "irradiance-detail", "rough-materials", "instance-copies", "device", "midpoints",
+                         "reference-samples", "tile-megapixels", "external-images", "lightmap-uv")
 
 
 def _settings_arguments(parser: argparse.ArgumentParser, path: str) -> list[str]:
@@ -85,7 +85,11 @@ def parse_args(args: list[str]) -> argparse.Namespace:
     p.add_argument("--uniform-sg-count", action=argparse.BooleanOptionalAction,
                    help="give every glossy material --sg-count SGs, whatever its roughness (Production does; "
                    "--no-uniform-sg-count: each the fewest its roughness needs)")
-    p.add_argument("--training-budget", type=float, dest="training_budget_s")
+    p.add_argument("--training-budget", type=float, dest="training_budget_s",
+                   help="seconds of training at most (Draft 30, Preview 120, Production 600)")
+    p.add_argument("--training-epochs", type=int, help="train exactly this many epochs per fit, however long they "
+                   "take, instead of the time budget: the same bake on a busy or an idle machine (a farm's nodes); "
+                   "0: by the time budget")
     p.add_argument("--lobe-refit-steps", type=int, help="Adam steps refitting the SGs' axes, sharpness and "
                    "amplitudes through the glossy shading after training (0: off; every preset: 150)")
     p.add_argument("--irradiance-detail", type=int, help="diffuse light at this many times the texel density, baked "
@@ -299,7 +303,8 @@ def run(ns, reporter: Reporter) -> int:
         ns.preset, texel_density=ns.texel_density, lightfield_resolution=ns.lightfield_resolution,
         samples=ns.samples, lightmap_samples=ns.lightmap_samples, sg_count=ns.sg_count,
         uniform_sg_count=ns.uniform_sg_count,
-        training_budget_s=ns.training_budget_s, lobe_refit_steps=ns.lobe_refit_steps,
+        training_budget_s=ns.training_budget_s, training_epochs=ns.training_epochs,
+        lobe_refit_steps=ns.lobe_refit_steps,
         rough_materials=ns.rough_materials, device=ns.device, irradiance_detail=ns.irradiance_detail,
         instance_copies=ns.instance_copies)
     out = ns.out.expanduser().resolve()

@@ -557,6 +557,40 @@ def test_each_training_seed_keeps_its_own_checkpoint_and_gives_its_own_sgs(tmp_p
     assert np.array_equal(textures[0][0], textures[0][1])
 
 
+def test_training_by_epochs_runs_that_many_whatever_the_budget_and_gives_the_same_sgs_again(tmp_path):
+    """A farm's nodes, busy or idle, must bake the same SGs: with training_epochs the CNN trains exactly that many
+    epochs (the 1-s time budget set beside it is not what stops it), the plan says so with an estimate, the train stage
+    is hashed with it (render is not), and the stage run again from scratch (no checkpoint) writes the same SGs."""
+    import shutil
+
+    from sg_lightfield.bake_directory.bake_plan import BakeInputError
+    from sg_lightfield.bake_directory.sg_textures import read_sg_texture
+    from sg_lightfield.training.train_stage import train_stage
+
+    ball = mesh_object("Epoch ball", uv_sphere(0.6, 16, 8), material("Epoch metal", 0.5, metallic=1.0))
+    lamp = bpy.data.objects.new("Epoch lamp", bpy.data.lights.new("Epoch lamp", "AREA"))
+    lamp.data.energy, lamp.location = 200.0, (0.5, -1.0, 2.5)
+    scene = scene_with(ball, lamp)
+    knobs = dict(texel_density=4.0, lightfield_resolution=8, samples=4, sg_count=2, training_budget_s=1.0)
+    plan = build_plan(scene, BakeSettings.from_preset("draft", training_epochs=700, **knobs))
+    by_time = build_plan(scene, BakeSettings.from_preset("draft", **knobs))
+    assert "training 700 epochs (~" in plan.summary() and "training <= 1 s" in by_time.summary()
+    assert plan.stage_hash("train") != by_time.stage_hash("train")
+    assert plan.stage_hash("render") == by_time.stage_hash("render")
+    with pytest.raises(BakeInputError, match="training epochs -1 is outside"):
+        BakeSettings.from_preset("draft", training_epochs=-1)
+    capture(scene, plan, tmp_path)
+    render_stage(scene, plan, tmp_path)
+    textures = []
+    for _ in range(2):
+        trained = train_stage(tmp_path, plan)
+        assert trained.epochs["lightfield"] == 700 and trained.stopped_because["lightfield"] == "epochs"
+        axis, sharpness, amplitude, _ = read_sg_texture(tmp_path / "sg_lightfield.exr")
+        textures.append(np.concatenate([axis.ravel(), sharpness.ravel(), amplitude.ravel()]))
+        shutil.rmtree(tmp_path / "train")  # the second run starts from scratch
+    assert np.array_equal(textures[0], textures[1])
+
+
 def test_with_environment_visibility_one_graph_shades_both_renderers_and_the_sg_irradiance_check_is_fair(tmp_path):
     """With IWEV the light field leaves the sky to IWEV, and the irradiance tile adds the sky back. The apply stage's
     check of the SGs' own irradiance compared them with that sky-lit total, and reported a median error of 0.98 on

@@ -62,6 +62,19 @@ def test_bad_settings_are_a_report_not_a_traceback(addon, tmp_path):
         assert "save the .blend first" in scene.sg_lightfield.status and not scene.sg_lightfield.is_baking
 
 
+def test_the_panels_training_epochs_reach_the_bake_settings(addon):
+    """The panel's Training Epochs (0: the time budget) reaches BakeSettings, custom preset or not."""
+    from sg_lightfield.blender_addon.operators import settings_from_panel
+
+    scene = build_demo_scene("demo:spheres")
+    panel = scene.sg_lightfield
+    assert settings_from_panel(panel).training_epochs == 0
+    panel.training_epochs = 120
+    for preset in ("DRAFT", "CUSTOM"):
+        panel.preset = preset
+        assert settings_from_panel(panel).training_epochs == 120, preset
+
+
 def test_cancel_mid_render_leaves_the_scene_unchanged_and_the_next_run_reuses_tiles(tmp_path):
     scene = build_demo_scene("demo:spheres")
     before = scene_fingerprint(scene)

@@ -202,6 +202,19 @@ def test_cli_plan_only_json_lines_parse(tmp_path):
     assert plan["hash"] == events[0]["hash"] and plan["texels"] > 0
 
 
+def test_cli_training_epochs_reach_the_plan_and_a_bad_count_is_one_error(tmp_path):
+    """--training-epochs, typed or from a farm's --settings file, reaches plan.json and the plan's summary."""
+    settings = tmp_path / "farm.json"
+    settings.write_text(json.dumps({"training-epochs": 150}))
+    for extra, epochs in ((["--training-epochs", "200"], 200), (["--settings", str(settings)], 150)):
+        out = _bake("--scene", "demo:spheres", "--out", str(tmp_path / "bake"), "--plan-only", *extra)
+        assert out.returncode == 0, out.stderr
+        plan = json.loads((tmp_path / "bake" / "plan.json").read_text())
+        assert plan["settings"]["training_epochs"] == epochs and f"training {epochs} epochs (~" in plan["summary"]
+    bad = _bake("--scene", "demo:spheres", "--out", str(tmp_path / "bad"), "--plan-only", "--training-epochs", "-5")
+    assert bad.returncode != 0 and bad.stderr.strip().splitlines()[-1].startswith("error: training epochs -5")
+
+
 def test_cli_production_plan_gives_16_sgs_everywhere_and_the_floor_its_lightmap_samples(tmp_path):
     """Production: 16 SGs on every glossy sphere (--no-uniform-sg-count brings back the per-material rule: 8 at
     roughness 0.4 and 0.5); the lightmap-only floor gets no light field (its light is in the irradiance detail

@@ -23,7 +23,8 @@ if __name__ == "__main__" and __package__ in (None, "", "training"):  # started 
 
     run_in_package(__file__)
 
-from ..bake_directory.bake_plan import BakeCancelled, BakeInputError, BakePlan, drive  # noqa: E402
+from ..bake_directory.bake_plan import (TRAINING_BUDGET_MAX_S, BakeCancelled, BakeInputError, BakePlan,  # noqa: E402
+                                        drive)
 from ..bake_directory.bake_report import save_png, update_report  # noqa: E402
 from ..shaders.env_visibility import above_horizon_fraction  # noqa: E402
 from ..bake_directory.lightfield_tiles import preview_mosaic, read_images  # noqa: E402
@@ -268,6 +269,7 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
         raise BakeInputError("--device cuda: torch sees no CUDA device here; use --device cpu")
     sg_count = plan.max_sg_count or settings.sg_count or 16
     budget = time_budget_s if time_budget_s is not None else settings.training_budget_s
+    epochs = settings.training_epochs if time_budget_s is None else 0  # a budget given here is the caller's choice
     # Only irradiance lightmaps (no object with SGs): apply integrates the light fields, nothing to fit.
     kinds = (["lightfield"] + (["env_visibility"] if plan.environment.iwev else [])) if plan.sg_objects else []
     if encoder not in ("cnn", "fixed_sg", "sh_l2"):
@@ -300,12 +302,15 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
             counts = texel_lobe_counts(atlas, texel_info, texels, plan, sg_count)
             data = LightFieldData.from_numpy(images, normals, device=device,
                                              lobe_counts=None if counts.min() == sg_count else counts)
-            config = TrainConfig(sg_count=sg_count, time_budget_s=budget / len(kinds), device=device, seed=seed)
+            # By epochs, the time budget is the longest allowed: the epochs end it (or a loss plateau, which follows
+            # the losses alone), not the machine's speed.
+            config = TrainConfig(sg_count=sg_count, device=device, seed=seed,
+                                 time_budget_s=TRAINING_BUDGET_MAX_S if epochs else budget / len(kinds))
             # Keyed by the rendered data, the SG counts and the seed, not the budget: a larger budget continues the
-            # same curve.
+            # same curve. A count of epochs has its own: a longer run's checkpoint must not stand for a shorter one.
             counts_key = hashlib.sha256(counts.tobytes()).hexdigest()[:8]
             checkpoint = out_dir / "train" / (f"{kind}_{plan.stage_hash('render')}_n{sg_count}_{counts_key}"
-                                              f"{f'_seed{seed}' if seed else ''}.pt")
+                                              f"{f'_seed{seed}' if seed else ''}{f'_e{epochs}' if epochs else ''}.pt")
             trainer = Trainer(data, config, checkpoint=checkpoint)
             lobe_steps = settings.lobe_refit_steps if kind == "lightfield" else 0
             shares = PROGRESS_SHARES_WITH_LOBE_REFIT if lobe_steps else PROGRESS_SHARES
@@ -314,13 +319,18 @@ def train_steps(out_dir, plan: BakePlan, *, device: str | None = None, time_budg
             last_save = time.perf_counter()
             try:
                 while True:
+                    if epochs and trainer.state.epoch >= epochs:
+                        state = trainer.state
+                        state.stopped_because = "epochs"
+                        break
                     state = trainer.train(epochs=1, save_checkpoint=False)
                     if time.perf_counter() - last_save > config.checkpoint_every_s:
                         trainer.save(trainer.checkpoint)
                         last_save = time.perf_counter()
                     if state.stopped_because != "epochs":
                         break
-                    fraction = min(state.seconds[-1] / max(config.time_budget_s, 1e-9), 1.0)
+                    fraction = (state.epoch / epochs if epochs
+                                else min(state.seconds[-1] / max(config.time_budget_s, 1e-9), 1.0))
                     yield (k + training_share * fraction) / len(kinds), \
                         f"{kind}: epoch {state.epoch}, loss {state.losses[-1]:.5f}"
             finally:
