@@ -450,6 +450,8 @@ class BakePlan:
             raise ValueError(f"unknown stage {stage!r}")
         data = asdict(self)
         data["settings"] = {k: v for k, v in data["settings"].items() if k in STAGE_SETTINGS[stage]}
+        if not data["settings"].get("training_epochs"):  # by time: hashed as before the setting existed
+            data["settings"].pop("training_epochs", None)
         if stage in ("capture", "render"):
             for obj in data["objects"]:
                 for material in obj["materials"]:

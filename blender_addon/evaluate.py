@@ -162,8 +162,8 @@ def surface_images(scene, camera, path) -> tuple[np.ndarray, np.ndarray, list[st
 def _surface_id_material(original, number: float):
     """An emission material showing (roughness, number, 0): a probe copy of `original` whose baked BSDFs emit their
     own per-pixel roughness (textures included; Mix Shaders blend it) and its emitters and the shaders the renderer
-    lights beside them roughness 1, or, for a material
-    without a baked BSDF, its constant. Returns (material, node-group copies made for it)."""
+    lights beside them roughness 1, or, for a material without a baked BSDF, its constant. Returns (material,
+    node-group copies made for it)."""
     if original is not None and leaves(original):
         def emit(inputs, node):
             combine = inputs._new("ShaderNodeCombineColor")
