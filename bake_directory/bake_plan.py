@@ -361,15 +361,13 @@ class BakePlan:
         left = sorted({m.name for o in self.objects for m in o.materials if m.reason.startswith("left to the renderer")})
         if left:
             lines.append("left to the renderer (reasons above): " + ", ".join(left))
-        coated = sorted({m.name for o in self.objects for m in o.materials if COAT_NOTE in m.reason})
-        if coated:
-            lines.append("baked below their coat, the coat kept for the renderer to light: " + ", ".join(coated))
-        cut_out = sorted({m.name for o in self.objects for m in o.materials if ALPHA_NOTE in m.reason})
-        if cut_out:
-            lines.append("baked with their alpha kept, back faces lit by the renderer: " + ", ".join(cut_out))
-        beside = sorted({m.name for o in self.objects for m in o.materials if RENDERER_LIT_NOTE in m.reason})
-        if beside:
-            lines.append("baked beside shaders the renderer lights (translucent, sheen, ...): " + ", ".join(beside))
+        for note, heading in (
+                (COAT_NOTE, "baked below their coat, the coat kept for the renderer to light"),
+                (ALPHA_NOTE, "baked with their alpha kept, back faces lit by the renderer"),
+                (RENDERER_LIT_NOTE, "baked beside shaders the renderer lights (translucent, sheen, ...)")):
+            names = sorted({m.name for o in self.objects for m in o.materials if note in m.reason})
+            if names:
+                lines.append(f"{heading}: " + ", ".join(names))
         if self.lightmap_only_texels and self.settings.irradiance_detail > 1:
             names = ", ".join(o.name for o in self.lightmap_only_objects)
             lines.append(f"objects with lightmaps only ({names}): no light fields (the irradiance detail image holds "

@@ -210,22 +210,17 @@ def measure_surfaces(scene, targets, tiles, atlas_shape, object_ids, should_meas
             for target, tile in chosen:
                 x, y, w, h = tile.pixel_rect
                 mine = object_ids[y:y + h, x:x + w] == tile.id
-                holes = mine.copy()
                 block = values[y:y + h, x:x + w]
                 for k, name in enumerate(PASSES):
                     baked = bake_tile(scene, target, tile, image, probe_for(name))[..., :3]
-                    if k == 0:
+                    if k == 0:  # its third channel is the weight; roughness and metallic are the first two
                         weight = baked[..., 2]
-                        mine &= weight > MIN_WEIGHT
-                    baked = baked[mine] / weight[mine, None]
-                    if k == 0:
-                        block[mine, 0:2] = baked[:, :2]
-                    else:
-                        block[mine, 3 * k - 1:3 * k + 2] = baked
-                holes &= ~mine
-                if mine.any():  # a texel wholly in a hole (never seen) gets the object's mean
-                    block[holes] = block[mine].mean(axis=0)
-                    measured[y:y + h, x:x + w] |= mine | holes
+                        covered = mine & (weight > MIN_WEIGHT)
+                    columns = slice(0, 2) if k == 0 else slice(3 * k - 1, 3 * k + 2)
+                    block[covered, columns] = (baked[covered] / weight[covered, None])[:, :columns.stop - columns.start]
+                if covered.any():  # a texel wholly in a hole (never seen) gets the object's mean
+                    block[mine & ~covered] = block[covered].mean(axis=0)
+                    measured[y:y + h, x:x + w] |= mine
     finally:
         remove_probes(probes.values(), created_groups, image)
     np.clip(values, 0.0, 1.0, out=values)
