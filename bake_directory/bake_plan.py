@@ -90,6 +90,12 @@ EVALUATE_PATHS_PER_PIXEL_SAMPLE = 2.5
 EEVEE_EVALUATE_S = 15.0
 
 
+# Beyond this many SGs, with the irradiance detail image's lookup beside them, Cycles renders the baked copies of
+# mixed, cut-out and emissive materials black (demo:materials, Cycles' evaluation: 20 and 24 SGs right at detail 4;
+# 32 SGs black at detail 2 and 4, right at detail 1). The settings refuse the combination.
+SG_COUNT_MAX_WITH_IRRADIANCE_DETAIL = 24
+
+
 # The refits after training (training/glossy_refit.py, glossy_lobe_fit.py) work where the GGX lobe spans at least
 # this many light-field pixels.
 REFIT_LOBE_PIXELS = 0.36
@@ -184,6 +190,11 @@ class BakeSettings:
             (0 <= self.lightmap_samples <= 65536, f"lightmap samples {self.lightmap_samples} is outside 0 (= samples)"
                                                    "..65536"),
             (0 <= self.sg_count <= 64, f"SG count {self.sg_count} is outside 0 (= 16)..64"),
+            (self.irradiance_detail == 1 or self.sg_count <= SG_COUNT_MAX_WITH_IRRADIANCE_DETAIL,
+             f"SG count {self.sg_count} with irradiance detail {self.irradiance_detail}: beyond "
+             f"{SG_COUNT_MAX_WITH_IRRADIANCE_DETAIL} SGs beside the detail image Cycles renders the baked copies of "
+             f"mixed, cut-out and emissive materials black; use at most {SG_COUNT_MAX_WITH_IRRADIANCE_DETAIL} SGs or "
+             "irradiance detail 1"),
             (1 <= self.training_budget_s <= TRAINING_BUDGET_MAX_S,
              f"training budget {self.training_budget_s} s is outside 1 s..7 days"),
             (0 <= self.training_epochs <= TRAINING_EPOCHS_MAX,
@@ -343,6 +354,14 @@ class BakePlan:
                 "evaluate": EEVEE_EVALUATE_S + EVALUATE_PATHS_PER_PIXEL_SAMPLE * evaluate_pixels * reference_samples
                 / ATLAS_RAYS_PER_SECOND_CPU}
 
+    def sharper_than_resolved(self) -> list[tuple[str, float]]:
+        """(name, roughness) of the glossy materials with a constant roughness whose GGX lobe is narrower than the
+        light field resolves (refit_min_roughness): sorted by name. A textured roughness is measured per texel only
+        at capture, so it is not judged here."""
+        least = refit_min_roughness(self.settings.lightfield_resolution)
+        return sorted({(m.name, m.roughness) for o in self.baked_objects for m in o.materials
+                       if m.glossy and "Roughness" not in m.textured and m.roughness < least})
+
     def decisions(self) -> list[str]:
         """What the bake models and why, one line each: what the CLI prints, the panel and the report show."""
         lines = [f"{o.name}: {'bake' if o.bake_lightfield else 'skip'} ({o.reason}; {o.texels} texels"
@@ -358,6 +377,15 @@ class BakePlan:
                          + f" ({rule})")
         if self.irradiance_only_materials:
             lines.append("irradiance lightmap only (rough, no SGs): " + ", ".join(self.irradiance_only_materials))
+        sharp = self.sharper_than_resolved()
+        if sharp:
+            resolution = self.settings.lightfield_resolution
+            finer = next((r for r in LIGHTFIELD_RESOLUTIONS if r > resolution), None)
+            lines.append(f"sharper than {resolution}x{resolution} light fields resolve (roughness below "
+                         f"{refit_min_roughness(resolution):.2f}), their reflections come out blurred: "
+                         + ", ".join(f"{name} at {roughness:.2f}" for name, roughness in sharp)
+                         + (f" (a light-field resolution of {finer} resolves down to {refit_min_roughness(finer):.2f}, "
+                            "at about 3x the render and training time)" if finer else ""))
         left = sorted({m.name for o in self.objects for m in o.materials if m.reason.startswith("left to the renderer")})
         if left:
             lines.append("left to the renderer (reasons above): " + ", ".join(left))

@@ -14,8 +14,10 @@ writes them to bench_out/bench.json; bench_out/results.md shows the plots first,
             (with and without the axis-alignment regulariser) at equal training time, fixed SG12 by NNLS
             and L2 SH by least squares: loss, RMSE, held-out midpoint error, bytes per texel; loss-vs-time
             plot and table in bench_out/train_<scene>.png / bench.json.
-  knobs     every quality knob's cost and error: from Draft on spheres, one knob at a time (KNOB_SWEEP), baked and
-            evaluated: bake seconds per stage, FLIP overall and on glossy pixels. The presets come from this table.
+  knobs     every quality knob's cost and error: from Draft on spheres (--knob-scene: any demo, materials included),
+            one knob at a time (KNOB_SWEEP, or --knobs), baked and evaluated against one set of references
+            (--knob-reference-samples): bake seconds per stage, FLIP overall, on glossy pixels and per material.
+            --knob-training-epochs compares at equal training. The presets come from this table.
   apply     per SG count N = 4, 8, 16, 32: evaluator node count, apply time, EEVEE first render (shader
             compilation included) against a compiled re-render of the baked `spheres`.
   presets   each preset end to end on spheres, room and courtyard (--quick: Draft on spheres and room):
@@ -384,7 +386,7 @@ def bench_apply(out_root: Path, sg_counts=(4, 8, 16, 32)) -> list[dict]:
         scene = build_demo_scene("spheres")
         scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 256, 144, 100
         settings = BakeSettings.from_preset("draft", lightfield_resolution=8, samples=8, sg_count=n,
-                                            training_budget_s=5.0)
+                                            training_budget_s=5.0, irradiance_detail=1)  # 32 SGs need detail 1
         out = out_root / f"apply_sg{n}"
         job = BakeJob(scene, settings, out, stages=("capture", "render", "train", "apply"))
         job.run()
@@ -921,14 +923,40 @@ def _print_encoders(rows: list[dict], setting: str):
 ENCODING_SPLIT_TEXELS = 96  # texels per sphere the encoders section splits the reflected error of (~20 s each)
 
 
-KNOB_SWEEP = {"texel_density": (2.0, 8.0), "lightfield_resolution": (8, 32), "samples": (4, 64), "sg_count": (4, 16),
-              "training_budget_s": (15.0, 240.0), "lightmap_samples": (4, 64), "irradiance_detail": (1, 8)}
+KNOB_SWEEP = {"texel_density": (2.0, 8.0), "lightfield_resolution": (8, 32), "samples": (4, 64), "sg_count": (4, 24),
+              "training_budget_s": (15.0, 240.0), "lightmap_samples": (4, 64), "irradiance_detail": (1, 8),
+              "lobe_refit_steps": (0, 600)}
+KNOB_SCENES = ("spheres", "room", "courtyard", "materials")
 
 
-def bench_knobs(out_root: Path, scene_name: str = "spheres", sweep=None) -> list[dict]:
+def parse_knob_sweep(text: str) -> dict:
+    """'knob=v1:v2,knob=v3' -> {knob: (v1, v2), knob: (v3,)}, knobs from KNOB_SWEEP, values as the setting's type;
+    a bare knob name takes KNOB_SWEEP's values. ValueError with one readable message otherwise."""
+    sweep = {}
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        knob, _, values = item.partition("=")
+        if knob not in KNOB_SWEEP:
+            raise ValueError(f"unknown knob '{knob}'; choose from {', '.join(KNOB_SWEEP)}")
+        kind = type(KNOB_SWEEP[knob][0])
+        try:
+            sweep[knob] = tuple(kind(v) for v in values.split(":")) if values else KNOB_SWEEP[knob]
+        except ValueError:
+            raise ValueError(f"knob '{knob}' takes {kind.__name__} values separated by ':', not '{values}'") from None
+        if not all(math.isfinite(v) for v in sweep[knob]):
+            raise ValueError(f"knob '{knob}' takes finite values, not '{values}'")
+    if not sweep:
+        raise ValueError("no knob named")
+    return sweep
+
+
+def bench_knobs(out_root: Path, scene_name: str = "spheres", sweep=None, reference_samples: int = 128,
+                training_epochs: int = 0) -> list[dict]:
     """Every quality knob's measured cost and error: from Draft, one knob at a time to each value of KNOB_SWEEP,
     baked end to end and evaluated against Cycles (2 views, 256x144, no EEVEE): bake seconds per stage and FLIP
-    overall and on glossy pixels. The presets in bake_directory/bake_plan.py are chosen from this table."""
+    overall, on glossy pixels and per material. The presets in bake_directory/bake_plan.py are chosen from this
+    table. The references are path traced once at `reference_samples` and shared by every run (the scene is built
+    the same each time). training_epochs > 0 trains every run that many epochs instead of Draft's time budget, so
+    that knobs which change the texel count are compared at equal training, not at equal seconds."""
     import json
 
     from ..blender_addon.demo_scenes import build_demo_scene
@@ -938,17 +966,20 @@ def bench_knobs(out_root: Path, scene_name: str = "spheres", sweep=None) -> list
     sweep = sweep or KNOB_SWEEP
     runs = [("draft", None, None)] + [(f"{knob}={value:g}", knob, value) for knob, values in sweep.items()
                                       for value in values]
-    rows = []
+    rows, references = [], {}
+    base = {"training_epochs": training_epochs} if training_epochs else {}
     for label, knob, value in runs:
         scene = build_demo_scene(scene_name)
-        settings = BakeSettings.from_preset("draft", **({knob: value} if knob else {}))
+        settings = BakeSettings.from_preset("draft", **{**base, **({knob: value} if knob else {})})
         out = out_root / f"knobs_{scene_name}_{label.replace('=', '_')}"
         job = BakeJob(scene, settings, out, stages=("capture", "render", "train", "apply"))
         job.run()
-        errors = evaluate_stage(scene, job.plan, out, views=2, with_eevee=False)
+        errors = evaluate_stage(scene, job.plan, out, views=2, with_eevee=False, reference_samples=reference_samples,
+                                test_samples=min(reference_samples, 128), reference_cache=references)
         classes = errors["flip_by_roughness"]
         report = json.loads((out / "report.json").read_text())
-        rows.append({"run": label, "bake_s": round(sum(job.timings.values()), 1),
+        rows.append({"run": label, "scene": scene_name, "reference_samples": reference_samples,
+                     "training_epochs": training_epochs, "bake_s": round(sum(job.timings.values()), 1),
                      "glossy_noise_flip": round(_over_glossy(errors["reference_noise_flip_by_roughness"]), 4),
                      "stages_s": {k: round(v, 1) for k, v in job.timings.items()},
                      "flip": round(errors["flip"], 4),
@@ -957,12 +988,14 @@ def bench_knobs(out_root: Path, scene_name: str = "spheres", sweep=None) -> list
                      "lightmap_noise_flip": _rounded(
                          errors["reference_noise_flip_by_roughness"]["roughness >= 0.6"]["flip"]),
                      "texels": report.get("texels"), "bytes_per_texel": report.get("bytes_per_texel"),
-                     "reference_noise_rmse": round(errors["reference_noise_rmse"], 4)})
+                     "reference_noise_rmse": round(errors["reference_noise_rmse"], 4),
+                     "flip_by_material": {k: round(v["flip"], 4) for k, v in errors["flip_by_material"].items()
+                                          if v["flip"] is not None}})
         r = rows[-1]
         print(f"knob {r['run']:<24} bake {r['bake_s']:7.1f} s {r['stages_s']}  FLIP {r['flip']:.4f}  glossy FLIP "
               f"{r['glossy_flip']:.4f} (reference noise {r['glossy_noise_flip']:.4f})  rough (lightmap) FLIP "
               f"{r['lightmap_flip']} (noise {r['lightmap_noise_flip']})  ({r['texels']} texels, "
-              f"{r['bytes_per_texel']} B/texel)", flush=True)
+              f"{r['bytes_per_texel']} B/texel); by material {r['flip_by_material']}", flush=True)
         _discard_scene(scene)
     return rows
 
@@ -1128,6 +1161,17 @@ def main(argv=None) -> int:
     p.add_argument("--encoder-trainings", type=int, metavar="N",
                    help="encoders section: CNN trainings (seeds) per free-SG bake, averaged (default 3, 1 with "
                    "--quick)")
+    p.add_argument("--knob-scene", choices=KNOB_SCENES, default="spheres",
+                   help="knobs section: the demo scene the knobs are swept on (default spheres)")
+    p.add_argument("--knobs", metavar="KNOB[=V1:V2],...",
+                   help="knobs section: the knobs and values to sweep (default every knob of KNOB_SWEEP at its values; "
+                   "a bare name takes those), e.g. lightfield_resolution=32,texel_density=8")
+    p.add_argument("--knob-reference-samples", type=int, default=128, metavar="SPP",
+                   help="knobs section: spp of the path-traced references, rendered once for the whole sweep "
+                   "(default 128)")
+    p.add_argument("--knob-training-epochs", type=int, default=0, metavar="N",
+                   help="knobs section: train every run N epochs instead of Draft's time budget (default 0: the "
+                   "budget), so that knobs changing the texel count are compared at equal training")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
                    help="render and presets sections: Cycles (and the training) on the CPU or on OptiX GPUs and CUDA "
                    "(the render section's numbers are kept apart in bench.json as render_cuda)")
@@ -1142,6 +1186,22 @@ def main(argv=None) -> int:
         p.error("--encoder-reference-samples takes 2 to 65536")
     if ns.encoder_trainings is not None and not 1 <= ns.encoder_trainings <= 16:
         p.error("--encoder-trainings takes 1 to 16")
+    if not 2 <= ns.knob_reference_samples <= 65536:
+        p.error("--knob-reference-samples takes 2 to 65536")
+    knob_sweep = None
+    if ns.knobs is not None:
+        try:
+            knob_sweep = parse_knob_sweep(ns.knobs)
+            for knob, values in knob_sweep.items():  # each run gets the bake's own checks of its settings
+                for value in values:
+                    BakeSettings.from_preset("draft", training_epochs=ns.knob_training_epochs, **{knob: value})
+        except (ValueError, BakeInputError) as error:
+            p.error(f"--knobs: {error}")
+    else:
+        try:
+            BakeSettings.from_preset("draft", training_epochs=ns.knob_training_epochs)
+        except BakeInputError as error:
+            p.error(f"--knob-training-epochs: {error}")
     texel_share = (ns.encoder_density / PRESETS["draft"]["texel_density"]) ** 2  # same CNN time per texel
     encoder_budget_s = ns.encoder_training_budget if ns.encoder_training_budget is not None else \
         (30.0 if ns.quick else 60.0) * texel_share
@@ -1174,8 +1234,9 @@ def main(argv=None) -> int:
                                              lobe_refit_steps=ns.encoder_lobe_refit_steps,
                                              seeds=ns.encoder_trainings or (1 if ns.quick else 3))
     if "knobs" in sections:
-        results["knobs"] = bench_knobs(ns.out, "spheres", {"lightfield_resolution": (32,), "samples": (64,)}
-                                       if ns.quick else None)
+        results["knobs"] = bench_knobs(ns.out, ns.knob_scene, knob_sweep or (
+            {"lightfield_resolution": (32,), "samples": (64,)} if ns.quick else None),
+            reference_samples=ns.knob_reference_samples, training_epochs=ns.knob_training_epochs)
     if "apply" in sections:
         results["apply"] = bench_apply(ns.out, (4, 16) if ns.quick else (4, 8, 16, 32))
     earlier = _read_bench_json(ns.out)

@@ -29,6 +29,16 @@ def test_spheres_plan_models_only_what_the_scene_requires():
     assert plan.hair_objects == [] and "hair off" in plan.summary()
 
 
+def test_the_plan_names_materials_sharper_than_the_light_field_resolves_and_a_finer_one_clears_them():
+    draft = build_plan(build_demo_scene("demo:materials"), DRAFT)
+    assert [(base_name(name), round(r, 2)) for name, r in draft.sharper_than_resolved()] == [("Painted Metal", 0.25)]
+    line = next(line for line in draft.decisions() if line.startswith("sharper than 16x16 light fields resolve"))
+    assert "Painted Metal at 0.25" in line and "resolution of 32 resolves down to 0.20" in line
+    assert "Checker Floor" not in line  # its roughness is a texture: measured per texel at capture, not judged here
+    finer = build_plan(build_demo_scene("demo:materials"), BakeSettings.from_preset("draft", lightfield_resolution=32))
+    assert finer.sharper_than_resolved() == [] and not any("sharper than" in line for line in finer.decisions())
+
+
 def test_room_and_courtyard_plans():
     room = build_plan(build_demo_scene("room"), DRAFT)
     assert {base_name(o.name) for o in room.baked_objects} >= {"Glossy Sphere"}
@@ -173,6 +183,7 @@ def test_zero_area_and_loose_vertices_are_skipped_with_a_warning():
 @pytest.mark.parametrize("overrides, message", [
     (dict(texel_density=1e9), "texel density"), (dict(lightfield_resolution=4), "resolution"),
     (dict(lightfield_resolution=72), "light-field resolution 72 is not one of 8, 16, 32, 64, 128"),
+    (dict(sg_count=32), "SG count 32 with irradiance detail 4: beyond 24 SGs"),
     (dict(samples=0), "samples"), (dict(sg_count=999), "SG count"), (dict(device="tpu"), "device"),
     (dict(lobe_refit_steps=-1), "lobe refit steps"), (dict(rough_materials="ignore"), "rough materials"),
     (dict(lightmap_samples=-4), "lightmap samples"), (dict(lightmap_samples=10**6), "lightmap samples")])
@@ -274,19 +285,36 @@ def test_cli_bad_input_is_one_line_and_nonzero(tmp_path, args, message):
     assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0]
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--encoder-resolution", "48"], "light-field resolution 48 is not one of"),
-    (["--encoder-training-budget", "0"], "training budget 0.0 s is outside"),
-    (["--encoder-lobe-refit-steps", "-1"], "lobe refit steps -1 is outside"),
-    (["--encoder-trainings", "17"], "--encoder-trainings takes 1 to 16"),
+@pytest.mark.parametrize("section, args, message", [
+    ("encoders", ["--encoder-resolution", "48"], "light-field resolution 48 is not one of"),
+    ("encoders", ["--encoder-training-budget", "0"], "training budget 0.0 s is outside"),
+    ("encoders", ["--encoder-lobe-refit-steps", "-1"], "lobe refit steps -1 is outside"),
+    ("encoders", ["--encoder-trainings", "17"], "--encoder-trainings takes 1 to 16"),
+    ("knobs", ["--knobs", "lightfield_resolution=48"], "light-field resolution 48 is not one of"),
+    ("knobs", ["--knobs", "texel_density=8:nan"], "knob 'texel_density' takes finite values"),
+    ("knobs", ["--knobs", "samples=many"], "knob 'samples' takes int values separated by ':'"),
+    ("knobs", ["--knobs", "sharpness=2"], "unknown knob 'sharpness'; choose from texel_density"),
+    ("knobs", ["--knobs", ","], "--knobs: no knob named"),
+    ("knobs", ["--knob-training-epochs", "-1"], "training epochs -1 is outside"),
+    ("knobs", ["--knob-reference-samples", "1"], "--knob-reference-samples takes 2 to 65536"),
+    ("knobs", ["--knob-scene", "attic"], "invalid choice: 'attic'"),
 ])
-def test_bench_checks_the_encoder_settings_before_any_work(tmp_path, capsys, args, message):
+def test_bench_checks_a_sections_settings_before_any_work(tmp_path, capsys, section, args, message):
     from sg_lightfield.headless.bench import main
 
     with pytest.raises(SystemExit) as stopped:
-        main(["--out", str(tmp_path / "bench"), "--sections", "encoders", *args])
+        main(["--out", str(tmp_path / "bench"), "--sections", section, *args])
     assert stopped.value.code == 2 and message in capsys.readouterr().err
     assert not (tmp_path / "bench").exists()  # stopped before it made its output directory
+
+
+def test_the_knob_sweep_reads_values_as_the_settings_type_and_bare_names_as_the_default_sweep():
+    from sg_lightfield.headless.bench import KNOB_SWEEP, parse_knob_sweep
+
+    sweep = parse_knob_sweep("lightfield_resolution=32, texel_density=8:2.5,irradiance_detail")
+    assert sweep == {"lightfield_resolution": (32,), "texel_density": (8.0, 2.5),
+                     "irradiance_detail": KNOB_SWEEP["irradiance_detail"]}
+    assert type(sweep["lightfield_resolution"][0]) is int and type(sweep["texel_density"][0]) is float
 
 
 def test_the_bench_discards_a_demo_scene_so_the_next_one_built_gets_the_same_names():
