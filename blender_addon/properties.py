@@ -39,7 +39,8 @@ class SGLightfieldSettings(bpy.types.PropertyGroup):
     sg_count_auto: BoolProperty(name="Automatic SG Count",
                                 description="Give each glossy material the fewest SGs its roughness needs "
                                 "(a measured rule, at most 16)", default=True)
-    sg_count: IntProperty(name="SG Count", description="Spherical Gaussians per texel", default=16, min=1, max=64)
+    sg_count: IntProperty(name="SG Count", description="Spherical Gaussians per texel (at most 24 with an "
+                          "irradiance detail above 1)", default=16, min=1, max=64)
     training_budget_s: FloatProperty(name="Training Budget", description="Seconds of training at most",
                                      default=300.0, min=1.0, subtype="TIME_ABSOLUTE", unit="TIME_ABSOLUTE")
     training_epochs: IntProperty(name="Training Epochs",
