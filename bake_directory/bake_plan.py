@@ -385,7 +385,7 @@ class BakePlan:
                          f"{refit_min_roughness(resolution):.2f}), their reflections come out blurred: "
                          + ", ".join(f"{name} at {roughness:.2f}" for name, roughness in sharp)
                          + (f" (a light-field resolution of {finer} resolves down to {refit_min_roughness(finer):.2f}, "
-                            "at about 3x the render and training time)" if finer else ""))
+                            "at about 3x the render time and 4x the training time)" if finer else ""))
         left = sorted({m.name for o in self.objects for m in o.materials if m.reason.startswith("left to the renderer")})
         if left:
             lines.append("left to the renderer (reasons above): " + ", ".join(left))
