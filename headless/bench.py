@@ -949,6 +949,13 @@ def parse_knob_sweep(text: str) -> dict:
     return sweep
 
 
+def knob_settings(knob: str | None, value, training_epochs: int = 0) -> BakeSettings:
+    """Draft with one knob changed (none: Draft itself), trained `training_epochs` epochs when above 0: one run of the
+    knob sweep, with the bake's own checks of its settings."""
+    return BakeSettings.from_preset("draft", **({"training_epochs": training_epochs} if training_epochs else {}),
+                                    **({knob: value} if knob else {}))
+
+
 def bench_knobs(out_root: Path, scene_name: str = "spheres", sweep=None, reference_samples: int = 128,
                 training_epochs: int = 0) -> list[dict]:
     """Every quality knob's measured cost and error: from Draft, one knob at a time to each value of KNOB_SWEEP,
@@ -967,10 +974,9 @@ def bench_knobs(out_root: Path, scene_name: str = "spheres", sweep=None, referen
     runs = [("draft", None, None)] + [(f"{knob}={value:g}", knob, value) for knob, values in sweep.items()
                                       for value in values]
     rows, references = [], {}
-    base = {"training_epochs": training_epochs} if training_epochs else {}
     for label, knob, value in runs:
         scene = build_demo_scene(scene_name)
-        settings = BakeSettings.from_preset("draft", **{**base, **({knob: value} if knob else {})})
+        settings = knob_settings(knob, value, training_epochs)
         out = out_root / f"knobs_{scene_name}_{label.replace('=', '_')}"
         job = BakeJob(scene, settings, out, stages=("capture", "render", "train", "apply"))
         job.run()
@@ -1192,14 +1198,14 @@ def main(argv=None) -> int:
     if ns.knobs is not None:
         try:
             knob_sweep = parse_knob_sweep(ns.knobs)
-            for knob, values in knob_sweep.items():  # each run gets the bake's own checks of its settings
+            for knob, values in knob_sweep.items():  # each run's settings, checked before any work
                 for value in values:
-                    BakeSettings.from_preset("draft", training_epochs=ns.knob_training_epochs, **{knob: value})
+                    knob_settings(knob, value, ns.knob_training_epochs)
         except (ValueError, BakeInputError) as error:
             p.error(f"--knobs: {error}")
     else:
         try:
-            BakeSettings.from_preset("draft", training_epochs=ns.knob_training_epochs)
+            knob_settings(None, None, ns.knob_training_epochs)
         except BakeInputError as error:
             p.error(f"--knob-training-epochs: {error}")
     texel_share = (ns.encoder_density / PRESETS["draft"]["texel_density"]) ** 2  # same CNN time per texel
