@@ -8,7 +8,7 @@ HAIR_DATA ?= hair_data
 # one test file per core, the longest first (tests/conftest.py LONGEST_FIRST)
 PYTEST_PARALLEL := -n auto --dist loadfile --no-loadscope-reorder
 
-.PHONY: demo test test-fast browser bench check-math farm-demo gpu-check extension hair-model clean
+.PHONY: demo test test-fast browser bench check-math farm-demo gpu-check gpu-payload extension hair-model clean
 
 $(STAMP): requirements.txt requirements-extension.txt
 	$(PYTHON_BOOTSTRAP) -m venv $(VENV)
@@ -77,6 +77,17 @@ gpu-check: $(STAMP)
 	  $(PY) headless/bake.py --scene demo:room --preset draft --out $(GPU_CHECK)/room --stages capture,render && \
 	  $(PY) headless/gpu_check.py --export $(GPU_CHECK)/room --out $(GPU_CHECK)/room_draft.npz; }
 	$(PY) headless/gpu_check.py --data $(GPU_CHECK)/room_draft.npz --report $(GPU_CHECK)/report.json
+
+# What needs Blender on a lent GPU machine (headless/gpu_blender_check.sh, docs/design-additions.md §49): Draft bakes
+# of the demo scenes here, and Python 3.11 with bpy, Cycles' sm_90 kernels (ptxas, about 8 min on 2 cores) and the
+# bakes' .blend files packed in .gpu/partK (48 MiB each: a call carries 64 MiB with the repository). Carry each part
+# in its own call, copying it to /opt/sglf/parts, then run `bash headless/gpu_blender_check.sh` with the last one.
+GPU_BAKES ?= bake_out/gpu_bakes
+gpu-payload: $(STAMP)
+	for s in spheres room courtyard materials; do test -f $(GPU_BAKES)/$$s/baked.blend || \
+	  $(PY) headless/bake.py --scene demo:$$s --preset draft --out $(GPU_BAKES)/$$s --stages capture,render,train,apply \
+	  || exit 1; done
+	$(PY) -m headless.gpu_payload --out .gpu --bakes $(foreach s,spheres room courtyard materials,$(GPU_BAKES)/$(s))
 
 extension: $(STAMP)
 	$(PY) -m headless.build_extension --out dist

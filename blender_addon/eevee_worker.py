@@ -24,18 +24,6 @@ import time
 import bpy
 from mathutils import Vector
 
-argv = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
-p = argparse.ArgumentParser()
-p.add_argument("blend")
-p.add_argument("scene")
-p.add_argument("out")
-p.add_argument("--engines", default="BLENDER_EEVEE")
-p.add_argument("--cameras", default="")
-p.add_argument("--samples", type=int, default=16)
-p.add_argument("--best-lighting", action="store_true")
-p.add_argument("--without-bake", action="store_true")
-ns = p.parse_args(argv)
-
 BAKE_RECORD_KEY = "sglf_bake"  # blender_addon/apply.py: {object: {slot index: original material}}
 PROBE_MARGIN = 1.1  # the volume probe covers the scene's bounding box and 10 % more
 
@@ -112,27 +100,46 @@ def best_lighting(scene):
     print(f"PROBE BAKE SECONDS {time.perf_counter() - start:.3f}", flush=True)
 
 
-if bpy.data.filepath != ns.blend:
-    bpy.ops.wm.open_mainfile(filepath=ns.blend)
-scene = bpy.data.scenes[ns.scene]
-if bpy.context.window is not None:
-    bpy.context.window.scene = scene
-scene.render.image_settings.file_format, scene.render.image_settings.color_depth = "OPEN_EXR", "32"
-if ns.without_bake:
-    restore_originals(scene)
-if ns.best_lighting or ns.without_bake:
-    best_lighting(scene)
-cameras = [bpy.data.objects[name] for name in ns.cameras.split(",") if name] or [scene.camera]
-for engine in ns.engines.split(","):
-    # Blender 4.2-4.5 call EEVEE "BLENDER_EEVEE_NEXT"; files keep the name asked for
-    scene.render.engine = "BLENDER_EEVEE_NEXT" if engine == "BLENDER_EEVEE" and bpy.app.version < (5, 0, 0) else engine
-    if engine == "CYCLES":
-        scene.cycles.samples, scene.cycles.use_denoising = ns.samples * 4, False
-    else:
-        scene.eevee.taa_render_samples = ns.samples
-    for k, camera in enumerate(cameras):
-        scene.camera = camera
-        scene.render.filepath = f"{ns.out}/{engine}_{k}.exr"
-        start = time.perf_counter()
-        bpy.ops.render.render(write_still=True, scene=scene.name)
-        print(f"SECONDS {engine} {k} {time.perf_counter() - start:.3f}", flush=True)
+def eevee_engine(engine: str = "BLENDER_EEVEE") -> str:
+    """Blender 4.2-4.5 call EEVEE "BLENDER_EEVEE_NEXT"; files keep the name asked for."""
+    return "BLENDER_EEVEE_NEXT" if engine == "BLENDER_EEVEE" and bpy.app.version < (5, 0, 0) else engine
+
+
+def main(argv):
+    p = argparse.ArgumentParser()
+    p.add_argument("blend")
+    p.add_argument("scene")
+    p.add_argument("out")
+    p.add_argument("--engines", default="BLENDER_EEVEE")
+    p.add_argument("--cameras", default="")
+    p.add_argument("--samples", type=int, default=16)
+    p.add_argument("--best-lighting", action="store_true")
+    p.add_argument("--without-bake", action="store_true")
+    ns = p.parse_args(argv)
+    if bpy.data.filepath != ns.blend:
+        bpy.ops.wm.open_mainfile(filepath=ns.blend)
+    scene = bpy.data.scenes[ns.scene]
+    if bpy.context.window is not None:
+        bpy.context.window.scene = scene
+    scene.render.image_settings.file_format, scene.render.image_settings.color_depth = "OPEN_EXR", "32"
+    if ns.without_bake:
+        restore_originals(scene)
+    if ns.best_lighting or ns.without_bake:
+        best_lighting(scene)
+    cameras = [bpy.data.objects[name] for name in ns.cameras.split(",") if name] or [scene.camera]
+    for engine in ns.engines.split(","):
+        scene.render.engine = eevee_engine(engine)
+        if engine == "CYCLES":
+            scene.cycles.samples, scene.cycles.use_denoising = ns.samples * 4, False
+        else:
+            scene.eevee.taa_render_samples = ns.samples
+        for k, camera in enumerate(cameras):
+            scene.camera = camera
+            scene.render.filepath = f"{ns.out}/{engine}_{k}.exr"
+            start = time.perf_counter()
+            bpy.ops.render.render(write_still=True, scene=scene.name)
+            print(f"SECONDS {engine} {k} {time.perf_counter() - start:.3f}", flush=True)
+
+
+if __name__ == "__main__":
+    main(sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:])

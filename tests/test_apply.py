@@ -369,6 +369,24 @@ def test_eevee_renders_the_baked_scene_like_cycles_evaluates_it(tmp_path):
     difference = np.abs(tonemap(eevee) - tonemap(cycles))
     assert tonemap(cycles).max() > 0.3  # the picture is not empty
     assert difference.mean() < 0.005, difference.mean()  # one graph in both engines (measured 4e-4)
+
+    # the frame-time tool a GPU machine runs (headless/eevee_frame_time.py), on this bake at a tiny size
+    tool = Path(__file__).resolve().parent.parent / "headless" / "eevee_frame_time.py"
+    report = tmp_path / "frame_time.json"
+    out = subprocess.run([sys.executable, str(tool), str(tmp_path), "--resolution", "32x20", "--samples", "1,3",
+                          "--repeats", "1", "--report", str(report)], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    (row,) = json.loads(report.read_text())
+    assert row["evaluator_off"]["evaluator_nodes_muted"] == 2  # one evaluator in each metal's baked copy
+    assert row["with_bake"]["evaluator_nodes_muted"] == row["without_bake"]["evaluator_nodes_muted"] == 0
+    for setup in ("with_bake", "evaluator_off", "without_bake"):
+        assert row[setup]["first_render_s"] > 0 and row[setup]["frame_ms"] >= 0
+        assert [len(v) for v in row[setup]["render_s"].values()] == [1, 1]
+    assert row["gpu"] and "frame" in out.stdout
+    bad = subprocess.run([sys.executable, str(tool), str(tmp_path / "nowhere")], capture_output=True, text=True,
+                         timeout=300)
+    assert bad.returncode == 1 and bad.stderr.strip().splitlines()[-1] == \
+        f"error: {tmp_path / 'nowhere'}: no baked.blend (bake with the apply stage first)"
     remove_bake(scene)
 
 

@@ -56,3 +56,32 @@ def test_gpu_check_refuses_a_file_that_is_not_its_export(tmp_path):
     np.savez(other, images=np.zeros((1, 8, 8, 3)))
     with pytest.raises(SystemExit, match="not a gpu-check export \\(missing normals"):
         gpu_check.load_data(other)
+
+
+def test_the_gpu_payload_keeps_what_bpy_loads_and_cycles_renders_with_on_nvidia():
+    """headless/gpu_payload.py's trimmed bpy, on the real package: every library bpy links, the OSL query module
+    and the image module it imports, Cycles' OptiX kernels and the PTX; not AMD kernels, other add-ons or USD's
+    Python."""
+    import subprocess
+    from pathlib import Path
+
+    from sg_lightfield.headless import gpu_payload
+
+    root = gpu_payload._site_packages() / "bpy"  # the wheel's folder (an imported bpy names its scripts' module)
+    linked = [line.split("=>")[1].split("(")[0].strip() for line in subprocess.run(
+        ["ldd", str(root / "__init__.so")], capture_output=True, text=True, check=True).stdout.splitlines()
+        if "=>" in line and str(root) in line]
+    assert len(linked) > 20
+    for library in linked:
+        assert gpu_payload.kept_in_bpy(str(Path(library).resolve().relative_to(root.resolve()))), library
+    kept = {str(path.relative_to(root)) for path in root.rglob("*")
+            if gpu_payload.kept_in_bpy(str(path.relative_to(root)))}
+    cycles = "5.0/scripts/addons_core/cycles/lib/"
+    site = "5.0/python/lib/python3.11/site-packages/"
+    for name in (cycles + "kernel_optix_osl_camera.ptx.zst", cycles + "kernel_optix.ptx.zst",
+                 cycles + "kernel_compute_75.ptx.zst", site + "oslquery", site + "OpenImageIO",
+                 "5.0/datafiles/studiolights/world/courtyard.exr", "5.0/datafiles/colormanagement/config.ocio"):
+        assert name in kept, name
+    assert not [k for k in kept if "kernel_gfx" in k or "kernel_sm_" in k or "/pxr/" in k or "__pycache__" in k]
+    assert {k.split("/")[3] for k in kept if k.startswith("5.0/scripts/addons_core/") and k.count("/") > 3} == \
+        {"cycles"}
