@@ -261,6 +261,7 @@ def render_eevee(scene, camera_names, work_dir: Path, samples: int = EEVEE_SAMPL
 
 
 REFERENCE_SAMPLES_MIN = 128
+EEVEE_LEFT_OUT = "left out of this evaluation: Cycles' only"
 EVALUATE_VIEWS = 2
 EVALUATE_RESOLUTION = (256, 144)
 EVALUATE_PIXELS = EVALUATE_RESOLUTION[0] * EVALUATE_RESOLUTION[1]
@@ -311,7 +312,7 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = EVALUATE_VIEWS, resolut
                  path=render.filepath, samples=cycles.samples, seed=cycles.seed, denoise=cycles.use_denoising,
                  adaptive=cycles.use_adaptive_sampling, camera=scene.camera)
     cameras = _view_cameras(scene, plan, views)
-    results, references, tests, eevee = [], [], [], {}
+    results, references, tests, eevee = [], [], [], ({} if with_eevee else {"error": EEVEE_LEFT_OUT})
     flip_maps, roughness_maps, material_maps, squared_maps, noise_flip_maps = [], [], [], [], []
     noise_squared_maps = []  # per pixel ((half A - half B) / 2)^2: the full reference's noise variance, unbiased
     try:

@@ -34,9 +34,10 @@ class BakeJob:
     def __init__(self, scene, settings, out_dir, *, stages=ALL_STAGES, share=None, midpoints=0,
                  tile_megapixels=4.0, lightmap_uv="", pack_images=True, training="auto", torch_python="",
                  runtime_dir=None,
-                 reference_samples=0):
+                 reference_samples=0, eevee_evaluation=True):
         """training: 'in_process' (this Python has torch), 'worker' (a subprocess), or 'auto'. reference_samples:
-        the evaluate stage's path-traced reference spp (0: reference_samples_for the settings)."""
+        the evaluate stage's path-traced reference spp (0: reference_samples_for the settings). eevee_evaluation:
+        False evaluates with Cycles only (machines where EEVEE gets no OpenGL context)."""
         unknown = [s for s in stages if s not in ALL_STAGES]
         if unknown:
             raise BakeInputError(f"unknown stage(s) {unknown}")
@@ -46,7 +47,8 @@ class BakeJob:
             raise BakeInputError(f"{out_dir}: exists and is not a directory")
         self.stages = [s for s in ALL_STAGES if s in stages]
         self.options = dict(share=share, midpoints=midpoints, tile_megapixels=tile_megapixels,
-                            lightmap_uv=lightmap_uv, pack_images=pack_images, reference_samples=reference_samples)
+                            lightmap_uv=lightmap_uv, pack_images=pack_images, reference_samples=reference_samples,
+                            eevee_evaluation=eevee_evaluation)
         self.training, self.torch_python, self.runtime_dir = training, torch_python, runtime_dir
         self.training_python = ""  # the Python the training worker ran in, and where it was found
         self.plan = build_plan(scene, settings)
@@ -282,7 +284,8 @@ class BakeJob:
 
         samples = self.options["reference_samples"] or reference_samples_for(self.plan.settings)
         yield "evaluate", self._overall("evaluate", 0.0), f"reference ({samples} spp) and baked renders"
-        return evaluate_stage(self.scene, self.plan, self.out_dir, reference_samples=samples)
+        return evaluate_stage(self.scene, self.plan, self.out_dir, reference_samples=samples,
+                              with_eevee=self.options["eevee_evaluation"])
 
     def _apply(self):
         yield "apply", self._overall("apply", 0.0), "materials"

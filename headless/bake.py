@@ -37,7 +37,8 @@ def script_args(argv: list[str]) -> list[str]:
 SETTINGS_FILE_OPTIONS = ("preset", "texel-density", "lightfield-resolution", "samples", "lightmap-samples", "sg-count",
                          "uniform-sg-count", "training-budget", "training-epochs", "lobe-refit-steps",
                          "irradiance-detail", "rough-materials", "instance-copies", "device", "midpoints",
-                         "reference-samples", "tile-megapixels", "external-images", "lightmap-uv")
+                         "reference-samples", "no-eevee-evaluation", "tile-megapixels", "external-images",
+                         "lightmap-uv")
 
 
 def _settings_arguments(parser: argparse.ArgumentParser, path: str) -> list[str]:
@@ -109,6 +110,9 @@ def parse_args(args: list[str]) -> argparse.Namespace:
                    help="also render M held-out light fields at texel midpoints (interpolation metric)")
     p.add_argument("--reference-samples", type=int, default=0, metavar="N",
                    help="the evaluate stage's path-traced reference spp (0: twice --samples, at least 128)")
+    p.add_argument("--no-eevee-evaluation", action="store_true",
+                   help="the evaluate stage compares with Cycles only, without EEVEE (a machine where EEVEE gets no "
+                   "OpenGL context, such as a farm node without one, would wait for it)")
     p.add_argument("--tile-megapixels", type=float, default=4.0, help="render pixels per tile (memory)")
     p.add_argument("--in-place", action="store_true", help="save the baked scene over --blend instead of DIR/baked.blend")
     p.add_argument("--external-images", action="store_true",
@@ -321,7 +325,8 @@ def run(ns, reporter: Reporter) -> int:
     scene = load_scene(ns)
     job = BakeJob(scene, settings, out, stages=[] if ns.plan_only else ns.stages, share=ns.tile,
                   midpoints=ns.midpoints, tile_megapixels=ns.tile_megapixels, lightmap_uv=ns.lightmap_uv,
-                  pack_images=not ns.external_images, reference_samples=ns.reference_samples)
+                  pack_images=not ns.external_images, reference_samples=ns.reference_samples,
+                  eevee_evaluation=not ns.no_eevee_evaluation)
     reporter.eta_s = job.eta_s
     plan, data = job.plan, job.plan.to_dict()
     reporter.event("plan", summary=data["summary"], hash=data["hash"], texels=data["texels"],

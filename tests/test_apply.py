@@ -271,7 +271,7 @@ def test_write_back_remove_restores_everything_and_rebake_does_not_pile_up(tmp_p
         scene.camera.location = (1, -6, 0.5)
         scene.camera.rotation_euler = (1.5, 0, 0)
         bpy.ops.render.render(write_still=True, scene=scene.name)
-    from sg_lightfield.blender_addon.evaluate import evaluate_stage
+    from sg_lightfield.blender_addon.evaluate import EEVEE_LEFT_OUT, evaluate_stage
 
     objects_before = set(bpy.data.objects.keys())
     errors = evaluate_stage(scene, plan, tmp_path, views=2, resolution=(32, 18), reference_samples=8)
@@ -305,6 +305,7 @@ def test_write_back_remove_restores_everything_and_rebake_does_not_pile_up(tmp_p
     first = evaluate_stage(scene, plan, tmp_path, views=2, resolution=(32, 18), reference_samples=8,
                            with_eevee=False, reference_cache=cache)
     assert len(cache) == 2 and first["reference_noise_rmse"] > 0
+    assert first["eevee"] == {"error": EEVEE_LEFT_OUT} and first["eevee_without_bake"] == {}  # named, not silent
     for key, (half_a, _, surfaces) in list(cache.items()):
         cache[key] = (half_a, half_a, surfaces)  # equal halves: a reference read from the cache has no noise
     again = evaluate_stage(scene, plan, tmp_path, views=2, resolution=(32, 18), reference_samples=8,

@@ -402,3 +402,16 @@ def test_the_bake_eta_replays_the_room_production_bake(monkeypatch, tmp_path):
     # Nothing of the gold or the floor reaches the refits at Preview's R = 16: its training is its budget.
     preview = pipeline.BakeJob(build_demo_scene("demo:room"), BakeSettings.from_preset("preview"), tmp_path / "p")
     assert preview.estimates_s["train"] == pytest.approx(120.0)
+
+
+@pytest.mark.slow
+def test_the_cli_evaluates_with_cycles_only_when_eevee_is_left_out(tmp_path):
+    """--no-eevee-evaluation: the whole bake, its evaluation with Cycles only, and EEVEE named as left out (a machine
+    without an OpenGL context would otherwise wait for EEVEE)."""
+    out = _bake("--scene", "demo:spheres", "--out", str(tmp_path / "o"), "--texel-density", "1",
+                "--lightfield-resolution", "8", "--samples", "2", "--training-epochs", "1", "--lobe-refit-steps", "0",
+                "--irradiance-detail", "1", "--reference-samples", "2", "--no-eevee-evaluation")
+    assert out.returncode == 0, out.stderr[-2000:]
+    errors = json.loads((tmp_path / "o" / "report.json").read_text())["errors"]
+    assert errors["flip"] > 0 and errors["eevee"] == {"error": "left out of this evaluation: Cycles' only"}
+    assert "EEVEE not evaluated: left out of this evaluation" in out.stdout + out.stderr
