@@ -10,8 +10,9 @@ For each bake directory it opens the baked .blend and renders the scene camera w
   without_bake         the original materials back in the baked slots, the same EEVEE settings: the scene before
   without_bake_best    (--best-lighting) EEVEE alone as the evaluate stage sets it up: ray tracing, baked probes
 A frame is one EEVEE render sample. The frame time is the slope of the render time against the sample count (the
-median of --repeats renders at each of two counts), which leaves out each render's fixed set-up and read-back; the
-first render of a set-up compiles its shaders and is reported on its own. The evaluator's share is
+median of --repeats renders at each of two counts), which leaves out each render's fixed set-up and read-back (None
+where the frames are lost in the renders' noise); the first render of a set-up compiles its shaders and is reported
+on its own. The evaluator's share is
 (with_bake - evaluator_off) / with_bake. Absolute numbers need a GPU: on a machine without one EEVEE runs on
 llvmpipe, the software rasteriser. Prints one line per set-up and writes --report (JSON).
 """
@@ -36,10 +37,10 @@ if __name__ == "__main__" and __package__ in (None, "", "headless"):  # started 
 import bpy  # noqa: E402
 
 from ..bake_directory.bake_plan import BakeInputError  # noqa: E402
+from ..blender_addon.apply import BAKE_RECORD_KEY  # noqa: E402
 from ..shaders.node_group import GROUP_NAME, VERSION_KEY  # noqa: E402
 
 EEVEE_WORKER = Path(__file__).resolve().parent.parent / "blender_addon" / "eevee_worker.py"
-BAKE_RECORD_KEY = "sglf_bake"
 SETUPS = ("with_bake", "evaluator_off", "without_bake")
 
 
@@ -97,8 +98,10 @@ def measure(scene, samples: tuple[int, int], repeats: int) -> dict:
         for n in samples:
             times[n].append(render_seconds(scene, n))
     low, high = (statistics.median(times[n]) for n in samples)
+    # None where more samples did not take longer: the frames are lost in the renders' noise (use more samples)
+    frame_ms = round((high - low) / (samples[1] - samples[0]) * 1000.0, 4) if high > low else None
     return {"first_render_s": round(first, 4), "render_s": {str(n): [round(t, 4) for t in times[n]] for n in samples},
-            "frame_ms": round(max(high - low, 0.0) / (samples[1] - samples[0]) * 1000.0, 4)}
+            "frame_ms": frame_ms}
 
 
 def frame_times(bake_dir: Path, resolution: tuple[int, int], samples: tuple[int, int], repeats: int,
@@ -122,10 +125,10 @@ def frame_times(bake_dir: Path, resolution: tuple[int, int], samples: tuple[int,
         row = measure(scene, samples, repeats)
         row["evaluator_nodes_muted"] = muted
         result[setup] = row
-        print(f"{bake_dir.name:>12} {setup:<18} first render {row['first_render_s']:7.2f} s  "
-              f"frame {row['frame_ms']:8.3f} ms", flush=True)
+        print(f"{bake_dir.name:>12} {setup:<18} first render {row['first_render_s']:7.2f} s  frame "
+              + (f"{row['frame_ms']:8.3f} ms" if row["frame_ms"] is not None else "lost in noise"), flush=True)
     with_bake, off = result["with_bake"]["frame_ms"], result["evaluator_off"]["frame_ms"]
-    result["evaluator_share"] = round((with_bake - off) / with_bake, 4) if with_bake > 0 else None
+    result["evaluator_share"] = round((with_bake - off) / with_bake, 4) if with_bake and off is not None else None
     try:
         import gpu
 
@@ -170,10 +173,13 @@ def main(argv=None) -> int:
             tmp = ns.report.with_suffix(".tmp")
             tmp.write_text(json.dumps(rows, indent=1, allow_nan=False))
             os.replace(tmp, ns.report)
+    def ms(value):
+        return f"{value:.3f} ms" if value is not None else "n/a"
+
     for row in rows:
         share = row["evaluator_share"]
-        print(f"{Path(row['bake']).name}: with the bake {row['with_bake']['frame_ms']:.3f} ms, without "
-              f"{row['without_bake']['frame_ms']:.3f} ms, evaluator share "
+        print(f"{Path(row['bake']).name}: with the bake {ms(row['with_bake']['frame_ms'])}, without "
+              f"{ms(row['without_bake']['frame_ms'])}, evaluator share "
               + (f"{share:.0%}" if share is not None and math.isfinite(share) else "n/a") + f" ({row['gpu']})")
     return 0
 

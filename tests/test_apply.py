@@ -381,7 +381,7 @@ def test_eevee_renders_the_baked_scene_like_cycles_evaluates_it(tmp_path):
     assert row["evaluator_off"]["evaluator_nodes_muted"] == 2  # one evaluator in each metal's baked copy
     assert row["with_bake"]["evaluator_nodes_muted"] == row["without_bake"]["evaluator_nodes_muted"] == 0
     for setup in ("with_bake", "evaluator_off", "without_bake"):
-        assert row[setup]["first_render_s"] > 0 and row[setup]["frame_ms"] >= 0
+        assert row[setup]["first_render_s"] > 0 and (row[setup]["frame_ms"] is None or row[setup]["frame_ms"] > 0)
         assert [len(v) for v in row[setup]["render_s"].values()] == [1, 1]
     assert row["gpu"] and "frame" in out.stdout
     bad = subprocess.run([sys.executable, str(tool), str(tmp_path / "nowhere")], capture_output=True, text=True,
