@@ -71,15 +71,15 @@ def open_bake(bake_dir: Path):
     return scenes[0]  # the file's own scene first
 
 
-def evaluator_nodes():
-    """Every group node, in a material or a user's node group, that runs one of the bake's evaluator groups (not the
-    groups those run inside)."""
+def evaluator_nodes() -> list[tuple[str, object]]:
+    """(owner, group node) for every group node, in a material or a user's node group, that runs one of the bake's
+    evaluator groups (not the groups those run inside); owner is the material's or the node group's name."""
     def evaluator(tree):
         return tree is not None and tree.get(VERSION_KEY) is not None and tree.name.startswith(GROUP_NAME)
 
-    trees = [m.node_tree for m in bpy.data.materials if m.node_tree is not None] + \
-        [g for g in bpy.data.node_groups if not evaluator(g)]
-    return [node for tree in trees for node in tree.nodes
+    owners = [(m.name, m.node_tree) for m in bpy.data.materials if m.node_tree is not None] + \
+        [(g.name, g) for g in bpy.data.node_groups if not evaluator(g)]
+    return [(name, node) for name, tree in owners for node in tree.nodes
             if node.bl_idname == "ShaderNodeGroup" and evaluator(node.node_tree)]
 
 
@@ -114,10 +114,10 @@ def frame_times(bake_dir: Path, resolution: tuple[int, int], samples: tuple[int,
         render.engine = worker.eevee_engine()
         render.resolution_x, render.resolution_y, render.resolution_percentage = *resolution, 100
         render.use_compositing = render.use_sequencer = False
-        muted = 0
+        muted = {}
         if setup == "evaluator_off":
-            for node in evaluator_nodes():
-                node.mute, muted = True, muted + 1
+            for owner, node in evaluator_nodes():
+                node.mute, muted[owner] = True, muted.get(owner, 0) + 1
         if setup.startswith("without_bake"):
             worker.restore_originals(scene)
         if setup == "without_bake_best":
