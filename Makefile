@@ -8,7 +8,7 @@ HAIR_DATA ?= hair_data
 # one test file per core, the longest first (tests/conftest.py LONGEST_FIRST)
 PYTEST_PARALLEL := -n auto --dist loadfile --no-loadscope-reorder
 
-.PHONY: demo test test-fast browser bench check-math farm-demo gpu-check gpu-payload extension hair-model clean
+.PHONY: demo test test-fast browser egl-build bench check-math farm-demo gpu-check gpu-payload extension hair-model clean
 
 $(STAMP): requirements.txt requirements-extension.txt
 	$(PYTHON_BOOTSTRAP) -m venv $(VENV)
@@ -35,7 +35,15 @@ browser:
 	  $$SUDO apt-get install -y --no-install-recommends chromium chromium-driver >/dev/null 2>&1 || \
 	  { $$SUDO apt-get update -qq && $$SUDO apt-get install -y --no-install-recommends chromium chromium-driver; }; }
 
-test: $(STAMP) browser
+# The EGL stand-in's test (tests/test_gpu_check.py) compiles headless/egl_device_display.c: gcc and EGL's headers,
+# installed here when missing (as root, or with sudo).
+egl-build:
+	@command -v gcc >/dev/null && test -f /usr/include/EGL/eglext.h || { \
+	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+	  $$SUDO apt-get install -y --no-install-recommends gcc libc6-dev libegl-dev >/dev/null 2>&1 || \
+	  { $$SUDO apt-get update -qq && $$SUDO apt-get install -y --no-install-recommends gcc libc6-dev libegl-dev; }; }
+
+test: $(STAMP) browser egl-build
 	$(PY) -m pytest -q $(PYTEST_PARALLEL)
 
 test-fast: $(STAMP)

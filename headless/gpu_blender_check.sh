@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # What needs Blender on a lent GPU machine, in one call (docs/design-additions.md §49), from the repository root:
 #   1. unpacks the parts headless/gpu_payload.py made (Python 3.11, bpy, Cycles' sm_90 kernels) from PARTS;
-#   2. checks in 90 s that EEVEE renders (its frame times are skipped where it does not);
+#   2. checks that EEVEE renders, on EGL's default display or else on the first EGL device (its frame times are
+#      skipped where it renders on neither);
 #   3. Production bakes of room and courtyard on OptiX (--device cuda), end to end with the evaluation (Cycles' only
 #      where EEVEE does not render), training on CUDA in the machine's Python 3.12 with torch for TRAINING_BUDGET_S
 #      seconds, side by side on six cores each;
@@ -51,12 +52,21 @@ production() {  # scene, cores
   stamp "Production $1 rc $?"
   cp /tmp/production_$1/report.json "$OUT/production_$1.json" 2>/dev/null
 }
-# EEVEE needs a GPU context (bpy's headless EGL one): a tiny measurement first, so that a machine without one is
-# named in seconds, not found out at the first frame time
+# EEVEE needs a GPU context (bpy's headless EGL one on the default display): a tiny measurement first, then the same
+# with EGL's default display made the first EGL device's (headless/egl_device_display.c); a machine where neither
+# renders is named in seconds and its bakes evaluate with Cycles only
+probe() {  # log name
+  SGLF_EGL_DEVICE_LOG=1 timeout -s ABRT 60 $PY -X faulthandler headless/eevee_frame_time.py "$BAKES/spheres" \
+    --resolution 64x36 --samples 1,2 --repeats 1 >"$OUT/logs/eevee_probe_$1.log" 2>&1
+}
 EEVEE_OK=""
-timeout -s ABRT 90 $PY -X faulthandler headless/eevee_frame_time.py "$BAKES/spheres" --resolution 64x36 \
-  --samples 1,2 --repeats 1 >"$OUT/logs/eevee_probe.log" 2>&1 && EEVEE_OK=1
-stamp "EEVEE probe: $([ -n "$EEVEE_OK" ] && echo renders || echo "no render in 90 s (logs/eevee_probe.log)")"
+if probe default_display; then
+  EEVEE_OK=default_display
+elif [ -f $P/egl_device/libEGL.so.1 ] && LD_LIBRARY_PATH=$P/egl_device:$LD_LIBRARY_PATH probe egl_device; then
+  EEVEE_OK=egl_device
+  export LD_LIBRARY_PATH=$P/egl_device:$LD_LIBRARY_PATH
+fi
+stamp "EEVEE probe: $([ -n "$EEVEE_OK" ] && echo "renders ($EEVEE_OK)" || echo 'no render (logs/eevee_probe_*.log)')"
 
 stamp "Production room and courtyard on OptiX (cores 4-9, 10-15), training $TRAINING_BUDGET_S s on CUDA"
 production room 4-9 &

@@ -14,11 +14,12 @@ machine's Python 3.11 and the project's virtual environment:
               ships: bpy 5.0.1 has no sm_90 cubin, and the driver's own compile of that PTX on first use takes
               minutes of the lease;
   system      the glvnd OpenGL/EGL dispatch and X11 client libraries bpy links (the NVIDIA driver brings the vendor
-              side);
+              side), and egl_device/: a stand-in libEGL.so.1 whose default display is the first EGL device's
+              (headless/egl_device_display.c), for where the default display does not work;
   wheels      OpenEXR for the machine's Python 3.12, which trains.
 into one .tar.xz split in parts of --part-mib MiB under --out/partK/ (a call carries 64 MiB with the repository's
 13 MiB), and the --bakes' baked.blend files under --out/bakes/, which the last call carries beside the last part.
-headless/gpu_blender_check.sh, run there, unpacks and measures. Needs the zstd and xz commands.
+headless/gpu_blender_check.sh, run there, unpacks and measures. Needs the zstd and xz commands and gcc.
 """
 from __future__ import annotations
 
@@ -94,6 +95,23 @@ def cycles_cubin(work: Path) -> bytes:
     return subprocess.run(["zstd", "-19", "-c", str(cubin)], check=True, capture_output=True).stdout
 
 
+def build_egl_device_display(out_dir: Path) -> Path:
+    """headless/egl_device_display.c as out_dir/libEGL.so.1 beside the real glvnd library as libEGL_real.so.1: put
+    out_dir first on LD_LIBRARY_PATH and EGL's default display becomes the first EGL device's. Needs gcc and EGL's
+    headers (Debian: gcc, libegl-dev)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        stub = Path(tmp) / "libEGL_real.so.1"  # only for linking: records the real library as a dependency by name
+        (Path(tmp) / "stub.c").write_text("void sglf_egl_real_stub(void) {}\n")
+        subprocess.run(["gcc", "-shared", "-fPIC", "-o", str(stub), str(Path(tmp) / "stub.c"),
+                        "-Wl,-soname,libEGL_real.so.1"], check=True)
+        subprocess.run(["gcc", "-shared", "-fPIC", "-O2", "-o", str(out_dir / "libEGL.so.1"),
+                        str(Path(__file__).with_name("egl_device_display.c")), "-Wl,-soname,libEGL.so.1",
+                        "-Wl,--no-as-needed", str(stub), "-ldl"], check=True)
+    shutil.copy2((SYSTEM_LIB_DIR / "libEGL.so.1").resolve(), out_dir / "libEGL_real.so.1")
+    return out_dir / "libEGL.so.1"
+
+
 def build(out: Path, bakes=(), part_mib: int = 48, cubin: Path | None = None) -> list[Path]:
     """The payload as parts out/partK/payload.tar.xz.K; returns the parts."""
     site = _site_packages()
@@ -121,6 +139,7 @@ def build(out: Path, bakes=(), part_mib: int = 48, cubin: Path | None = None) ->
             tar.addfile(info, io.BytesIO(sm))
             for lib in SYSTEM_LIBS:
                 tar.add((SYSTEM_LIB_DIR / lib).resolve(), f"p311/syslib/{lib}")
+            tar.add(build_egl_device_display(work / "egl_device").parent, "p311/egl_device")
             subprocess.run([sys.executable, "-m", "pip", "download", "--quiet", "--no-deps", "--only-binary=:all:",
                             "--python-version", "3.12", "--implementation", "cp", "--platform",
                             "manylinux_2_28_x86_64", "--platform", "manylinux_2_17_x86_64", OPENEXR_WHEEL, "-d",

@@ -85,3 +85,33 @@ def test_the_gpu_payload_keeps_what_bpy_loads_and_cycles_renders_with_on_nvidia(
     assert not [k for k in kept if "kernel_gfx" in k or "kernel_sm_" in k or "/pxr/" in k or "__pycache__" in k]
     assert {k.split("/")[3] for k in kept if k.startswith("5.0/scripts/addons_core/") and k.count("/") > 3} == \
         {"cycles"}
+
+
+@pytest.mark.slow
+def test_the_egl_stand_in_renders_eevee_on_the_first_egl_device(tmp_path):
+    """headless/egl_device_display.c, built as the payload builds it: with it first on the library path, bpy's EEVEE
+    gets its context from the first EGL device (here Mesa's software one) and renders; the lead for lent GPU machines
+    whose default display hangs (docs/design-additions.md §49)."""
+    import os
+    import subprocess
+    import sys
+
+    from sg_lightfield.headless import gpu_payload
+
+    library = gpu_payload.build_egl_device_display(tmp_path / "egl_device")
+    assert library.is_file() and (library.parent / "libEGL_real.so.1").is_file()
+    script = ("import bpy, numpy\n"
+              "scene = bpy.context.scene\n"
+              "scene.render.engine = 'BLENDER_EEVEE'\n"
+              "scene.render.resolution_x, scene.render.resolution_y = 24, 16\n"
+              "scene.eevee.taa_render_samples = 1\n"
+              f"scene.render.filepath = {str(tmp_path / 'cube.png')!r}\n"
+              "bpy.ops.render.render(write_still=True)\n"
+              "import gpu\n"
+              "print('RENDERER', gpu.platform.renderer_get())\n")
+    env = {**os.environ, "LD_LIBRARY_PATH": str(library.parent) + os.pathsep + os.environ.get("LD_LIBRARY_PATH", ""),
+           "SGLF_EGL_DEVICE_LOG": "1", "PYTHONPATH": ""}
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300, env=env)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "egl_device_display: the default display is device 0 of" in out.stderr and "(a display)" in out.stderr
+    assert "RENDERER" in out.stdout and (tmp_path / "cube.png").stat().st_size > 0
