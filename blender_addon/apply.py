@@ -262,6 +262,11 @@ def _baked_material(original, group, irradiance_group):
     return material
 
 
+def is_bake_group(tree) -> bool:
+    """Whether a node tree is one of the bake's node groups (an evaluator 'SG Lightfield ...' or a group inside one)."""
+    return tree is not None and VERSION_KEY in tree and tree.name.startswith(GROUP_NAME)
+
+
 def baked_groups(material, renderer: str = "EEVEE") -> list:
     """The bake's node groups (SG Lightfield ...) that `renderer`'s ('EEVEE' or 'CYCLES') Material Output of a baked
     material reaches, through the user's nodes and node groups, in the order first reached."""
@@ -274,7 +279,7 @@ def baked_groups(material, renderer: str = "EEVEE") -> list:
             continue
         seen.add(node.as_pointer())
         if node.bl_idname == "ShaderNodeGroup" and node.node_tree is not None:
-            if node.node_tree.get(VERSION_KEY) and node.node_tree.name.startswith(GROUP_NAME):
+            if is_bake_group(node.node_tree):
                 found.append(node.node_tree)
                 continue
             stack += [n for n in node.node_tree.nodes if n.bl_idname == "NodeGroupOutput"]
@@ -384,8 +389,7 @@ def apply_stage(scene, plan, out_dir, *, pack_images: bool = True, progress=None
 def _remove_unused_groups():
     """Remove the bake's node groups nothing uses; a nested group ('<group> / ...') is freed by removing its parent."""
     while True:
-        unused = [g for g in bpy.data.node_groups
-                  if VERSION_KEY in g and g.name.startswith(GROUP_NAME) and g.users == 0]
+        unused = [g for g in bpy.data.node_groups if is_bake_group(g) and g.users == 0]
         if not unused:
             return
         for group in unused:

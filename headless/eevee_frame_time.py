@@ -37,8 +37,7 @@ if __name__ == "__main__" and __package__ in (None, "", "headless"):  # started 
 import bpy  # noqa: E402
 
 from ..bake_directory.bake_plan import BakeInputError  # noqa: E402
-from ..blender_addon.apply import BAKE_RECORD_KEY  # noqa: E402
-from ..shaders.node_group import GROUP_NAME, VERSION_KEY  # noqa: E402
+from ..blender_addon.apply import BAKE_RECORD_KEY, is_bake_group  # noqa: E402
 
 EEVEE_WORKER = Path(__file__).resolve().parent.parent / "blender_addon" / "eevee_worker.py"
 SETUPS = ("with_bake", "evaluator_off", "without_bake")
@@ -74,13 +73,10 @@ def open_bake(bake_dir: Path):
 def evaluator_nodes() -> list[tuple[str, object]]:
     """(owner, group node) for every group node, in a material or a user's node group, that runs one of the bake's
     evaluator groups (not the groups those run inside); owner is the material's or the node group's name."""
-    def evaluator(tree):
-        return tree is not None and tree.get(VERSION_KEY) is not None and tree.name.startswith(GROUP_NAME)
-
     owners = [(m.name, m.node_tree) for m in bpy.data.materials if m.node_tree is not None] + \
-        [(g.name, g) for g in bpy.data.node_groups if not evaluator(g)]
+        [(g.name, g) for g in bpy.data.node_groups if not is_bake_group(g)]
     return [(name, node) for name, tree in owners for node in tree.nodes
-            if node.bl_idname == "ShaderNodeGroup" and evaluator(node.node_tree)]
+            if node.bl_idname == "ShaderNodeGroup" and is_bake_group(node.node_tree)]
 
 
 def render_seconds(scene, samples: int) -> float:

@@ -122,7 +122,7 @@ def build(out: Path, bakes=(), part_mib: int = 48, cubin: Path | None = None) ->
         sm = cubin.read_bytes() if cubin else cycles_cubin(work)
         archive = work / "payload.tar"
         with tarfile.open(archive, "w") as tar:
-            tar.add(Path(sys.base_prefix) / "bin" / version, f"p311/bin/{version}")
+            tar.add(prefix / "bin" / version, f"p311/bin/{version}")
             for lib in prefix.glob("lib/libpython3*.so*"):
                 tar.add(lib.resolve(), f"p311/lib/{lib.name}")
             stdlib = prefix / "lib" / version
