@@ -54,9 +54,15 @@ LIGHTMAP_SAMPLES_PRODUCTION = 64
 # instead of the light fields' cosine-weighted mean at the texels: lamp shadows and contact shading at 4x finer
 # pixels for a bake of a few seconds. The samples per pixel of that bake, and its cost in paths per pixel sample.
 IRRADIANCE_DETAIL_SAMPLES = 128  # the direct light's, per detail pixel
-IRRADIANCE_INDIRECT_SAMPLES = 1024  # the indirect light's, per texel (baked at the texel density, then upsampled)
+# The indirect light's, per detail pixel. Baked at the texels' resolution (1024 samples, upsampled) it blurred the
+# light that passes a leaf card or a glass sphere over a texel; at the detail's, Draft FLIP against the same light
+# fields: demo:materials 0.0325 -> 0.0321 (the leaf 0.034 -> 0.031), room 0.0561 -> 0.0551, for a bake of 13.5 s
+# (room 9.8 -> 29.9 s) (docs/design-additions.md section 50).
+IRRADIANCE_INDIRECT_SAMPLES = 256
 IRRADIANCE_DETAIL_MAX = 8
-IRRADIANCE_DETAIL_PATHS_PER_SAMPLE = 1.1  # demo:materials at Draft: 2.3 M pixel samples in 10 s
+# camera paths per pixel sample of both passes, at the atlas render's rate: demo:materials at Draft 7.5 M pixel
+# samples (direct and indirect) in 13.5 s, room 18.5 M in 29.9 s
+IRRADIANCE_DETAIL_PATHS_PER_SAMPLE = 0.45
 PRESETS = {
     "draft": dict(texel_density=4.0, lightfield_resolution=16, samples=16, sg_count=16, training_budget_s=30.0,
                   lobe_refit_steps=LOBE_REFIT_STEPS, lightmap_samples=0, irradiance_detail=4),
@@ -327,8 +333,8 @@ class BakePlan:
         detail = self.settings.irradiance_detail
         if detail <= 1 or not self.baked_objects:
             return 0.0
-        return (self.texels * detail * detail * IRRADIANCE_DETAIL_SAMPLES * IRRADIANCE_DETAIL_PATHS_PER_SAMPLE
-                / ATLAS_RAYS_PER_SECOND_CPU)
+        return (self.texels * detail * detail * (IRRADIANCE_DETAIL_SAMPLES + IRRADIANCE_INDIRECT_SAMPLES)
+                * IRRADIANCE_DETAIL_PATHS_PER_SAMPLE / ATLAS_RAYS_PER_SECOND_CPU)
 
     def training_estimate_s(self) -> float:
         """The CNN's training: the time budget, or its epochs' expected time on 2 CPU cores."""
@@ -408,7 +414,8 @@ class BakePlan:
         if self.baked_objects:
             detail = self.settings.irradiance_detail
             lines.append(f"diffuse light: a Cycles diffuse bake at {detail}x the texel density "
-                         f"({detail * self.settings.texel_density:g} pixels/m, {IRRADIANCE_DETAIL_SAMPLES} samples)"
+                         f"({detail * self.settings.texel_density:g} pixels/m, {IRRADIANCE_DETAIL_SAMPLES} samples of "
+                         f"direct and {IRRADIANCE_INDIRECT_SAMPLES} of indirect light)"
                          if detail > 1 else "diffuse light: the light fields' irradiance at the texels")
             metals = self.glossy_bounce_objects
             lines.append("light fields rendered with one diffuse bounce fewer than the scene allows"

@@ -717,7 +717,8 @@ def _irradiance_detail(scene, plan, out_dir, targets, tiles, atlas_shape, layout
         path.unlink(missing_ok=True)
         return {"detail": 1}
     wanted = {"plan_hash": plan.stage_hash("capture"), "detail": str(detail), "samples": str(IRRADIANCE_DETAIL_SAMPLES),
-              "indirect_samples": str(IRRADIANCE_INDIRECT_SAMPLES), "bounces": "the scene's, own colours",
+              "indirect_samples": str(IRRADIANCE_INDIRECT_SAMPLES), "indirect_resolution": "the detail's",
+              "bounces": "the scene's, own colours",
               "kind": "irradiance_detail", "layout": layout}
     if path.is_file():
         try:

@@ -8,8 +8,10 @@ its colour) of a white Lambertian copy of each surface, with the material's own 
 pixel for a fraction of the light fields' cost: no directions are stored, one value per pixel. It is baked into the
 same atlas layout, `detail` pixels per texel, so the baked material reads it with the atlas UV it already computes.
 
-The direct light is baked at the detail's resolution, the indirect light (slowly varying, and the noise at the
-detail's samples) at the texels' with more samples, upsampled. Same scene and the scene's own bounce budget (a bake
+Direct and indirect light are baked at the detail's resolution, the indirect with more samples: light that reaches a
+surface through a Translucent BSDF or glass is indirect to Cycles (a shadow ray stops there), and at the texels' own
+resolution a leaf card's light and a glass sphere's caustic blurred over 25-cm texels (docs/design-additions.md §50).
+Same scene and the scene's own bounce budget (a bake
 point is a camera ray's hit: its paths count bounces as a render's do, while the light fields leave one out because
 their camera sits on the surface), the user's lamps and world as they are. The white copy shows only to the bake's
 own camera ray: a path that comes back to the object sees its real material, or the demo room's light would bounce
@@ -70,9 +72,8 @@ def bake_irradiance_detail(scene, targets, tiles, atlas_shape, detail: int, samp
                            indirect_samples: int = IRRADIANCE_INDIRECT_SAMPLES,
                            progress=lambda fraction, message: None, should_cancel=lambda: False):
     """Irradiance E (W/m^2 per unit radiance, as the light fields' quadrature gives it) of the capture `targets`, each
-    baked into its tile (capture.ObjectTile): the direct light at `detail` pixels per texel with `samples`, the
-    indirect light at one pixel per texel with `indirect_samples`, upsampled bilinearly and added (indirect light
-    varies slowly over a surface, and at the detail's samples it was the noise: the demo room's walls). Returns
+    baked into its tile (capture.ObjectTile) at `detail` pixels per texel: the direct light with `samples`, the
+    indirect light with `indirect_samples`, added. Returns
     ((H * detail, W * detail, 3) float32 E, row 0 = the atlas' top; (H * detail, W * detail) mask of the pixels a
     bake wrote; {'seconds', 'samples', ...})."""
     start = time.perf_counter()
@@ -100,12 +101,11 @@ def bake_irradiance_detail(scene, targets, tiles, atlas_shape, detail: int, samp
                                        pass_filter={"DIRECT"}, scale=detail, margin=detail)
                 with CyclesBakeSettings(scene, indirect_samples):
                     indirect = bake_tile(scene, target, tile, image, white_for_slot, bake_type="DIFFUSE",
-                                         pass_filter={"INDIRECT"}, scale=1, margin=2)
-            filled_indirect = filled(indirect[..., :3], indirect[..., 3] > 0, 2)
+                                         pass_filter={"INDIRECT"}, scale=detail, margin=2 * detail)
             x, y, w, h = (int(v) * detail for v in tile.pixel_rect)
             mine = direct[..., 3] > 0
             block = irradiance[y:y + h, x:x + w]
-            light = direct[..., :3] + upsample_bilinear(filled_indirect, detail)
+            light = direct[..., :3] + filled(indirect[..., :3], indirect[..., 3] > 0, 2 * detail)
             block[mine] = light[mine] * math.pi  # the passes are E / pi: a white Lambertian's radiance
             written[y:y + h, x:x + w] |= mine
     finally:
@@ -120,23 +120,6 @@ def filled(irradiance: np.ndarray, written: np.ndarray, rings: int) -> np.ndarra
     (and EEVEE's mipmapped) lookup near a chart's edge then blends the chart's own light, not black."""
     out, _ = dilate({"E": irradiance}, written, rings)
     return out["E"]
-
-
-def upsample_bilinear(block: np.ndarray, factor: int) -> np.ndarray:
-    """(h, w, C) texel values -> (h * factor, w * factor, C): each pixel the bilinear blend of the four texel centres
-    around its own centre, edges clamped (the texels' gutters are filled before)."""
-    h, w = block.shape[:2]
-
-    def axis(n):
-        centre = np.clip((np.arange(n * factor) + 0.5) / factor - 0.5, 0.0, n - 1.0)  # in texel units
-        low = np.floor(centre).astype(np.int64)
-        return low, np.minimum(low + 1, n - 1), centre - low
-
-    r0, r1, fr = axis(h)
-    c0, c1, fc = axis(w)
-    top = block[r0][:, c0] * (1 - fc)[None, :, None] + block[r0][:, c1] * fc[None, :, None]
-    bottom = block[r1][:, c0] * (1 - fc)[None, :, None] + block[r1][:, c1] * fc[None, :, None]
-    return (top * (1 - fr)[:, None, None] + bottom * fr[:, None, None]).astype(block.dtype)
 
 
 def texel_means(irradiance: np.ndarray, written: np.ndarray, detail: int, texels: np.ndarray) -> np.ndarray:

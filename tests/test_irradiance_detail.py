@@ -217,16 +217,3 @@ def test_a_surface_baked_through_a_copy_is_not_shadowed_by_its_own_original(tmp_
     assert lit.size > 0.5 * irradiance[..., 1].size
     assert np.allclose(lit, np.pi, rtol=0.02), (lit.min(), np.median(lit))
     assert {name: getattr(plane, name) for name in RAY_VISIBILITY} == visibility
-
-
-def test_upsample_bilinear_blends_the_texel_centres_around_each_pixel():
-    """A 2 x 3 ramp at factor 4: pixel centres between texel centres interpolate linearly; beyond the outer centres
-    the edge texel's value holds (the gutters are filled before)."""
-    from sg_lightfield.blender_addon.irradiance_detail import upsample_bilinear
-
-    block = np.array([[0.0, 1.0, 2.0], [10.0, 11.0, 12.0]])[..., None]
-    up = upsample_bilinear(block, 4)
-    assert up.shape == (8, 12, 1)
-    assert np.allclose(up[0, :, 0], [0, 0, 0.125, 0.375, 0.625, 0.875, 1.125, 1.375, 1.625, 1.875, 2, 2])
-    assert np.allclose(up[:, 0, 0], [0, 0, 1.25, 3.75, 6.25, 8.75, 10, 10])
-    assert np.isclose(up.mean(), block.mean())
