@@ -11,12 +11,11 @@ same atlas layout, `detail` pixels per texel, so the baked material reads it wit
 Direct and indirect light are baked at the detail's resolution, the indirect with more samples: light that reaches a
 surface through a Translucent BSDF or glass is indirect to Cycles (a shadow ray stops there), and at the texels' own
 resolution a leaf card's light and a glass sphere's caustic blurred over 25-cm texels (docs/design-additions.md §50).
-Same scene and the scene's own bounce budget (a bake
-point is a camera ray's hit: its paths count bounces as a render's do, while the light fields leave one out because
-their camera sits on the surface), the user's lamps and world as they are. The white copy shows only to the bake's
-own camera ray: a path that comes back to the object sees its real material, or the demo room's light would bounce
-off a white floor (measured: walls 8 % too bright). Each object's slots are swapped for the white copies for its own
-bake and restored after; the copies are removed.
+Same scene and the scene's own bounce budget (a bake point is a camera ray's hit: its paths count bounces as a
+render's do, while the light fields leave one out because their camera sits on the surface), the user's lamps and
+world as they are. The white copy shows only to the bake's own camera ray: a path that comes back to the object sees
+its real material, or the demo room's light would bounce off a white floor (measured: walls 8 % too bright). Each
+object's slots are swapped for the white copies for its own bake and restored after; the copies are removed.
 """
 from __future__ import annotations
 
