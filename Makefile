@@ -27,21 +27,21 @@ demo: $(STAMP)
 	$(PY) -m headless.build_extension --out dist
 	@echo "report: $(DEMO_OUT)/report.html   baked scene: $(DEMO_OUT)/baked.blend"
 
-# The report test opens report.html in Debian's chromium through chromedriver: installed here when missing
-# (as root, or with sudo).
+# Debian packages $(1), installed as root or with sudo; the package lists are updated only if the first try fails.
+apt_install = SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+	  $$SUDO apt-get install -y --no-install-recommends $(1) >/dev/null 2>&1 || \
+	  { $$SUDO apt-get update -qq && $$SUDO apt-get install -y --no-install-recommends $(1); }
+
+# The report test opens report.html in Debian's chromium through chromedriver: installed here when missing.
 browser:
 	@command -v chromium >/dev/null && command -v chromedriver >/dev/null || { \
-	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
-	  $$SUDO apt-get install -y --no-install-recommends chromium chromium-driver >/dev/null 2>&1 || \
-	  { $$SUDO apt-get update -qq && $$SUDO apt-get install -y --no-install-recommends chromium chromium-driver; }; }
+	  $(call apt_install,chromium chromium-driver); }
 
 # The EGL stand-in's test (tests/test_gpu_check.py) compiles headless/egl_device_display.c: gcc and EGL's headers,
-# installed here when missing (as root, or with sudo).
+# installed here when missing.
 egl-build:
 	@command -v gcc >/dev/null && test -f /usr/include/EGL/eglext.h || { \
-	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
-	  $$SUDO apt-get install -y --no-install-recommends gcc libc6-dev libegl-dev >/dev/null 2>&1 || \
-	  { $$SUDO apt-get update -qq && $$SUDO apt-get install -y --no-install-recommends gcc libc6-dev libegl-dev; }; }
+	  $(call apt_install,gcc libc6-dev libegl-dev); }
 
 test: $(STAMP) browser egl-build
 	$(PY) -m pytest -q $(PYTEST_PARALLEL)
