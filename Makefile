@@ -8,7 +8,7 @@ HAIR_DATA ?= hair_data
 # one test file per core, the longest first (tests/conftest.py LONGEST_FIRST)
 PYTEST_PARALLEL := -n auto --dist loadfile --no-loadscope-reorder
 
-.PHONY: demo test test-fast browser egl-build bench check-math farm-demo gpu-check gpu-payload extension hair-model clean
+.PHONY: demo test test-fast browser egl-build blender-lts bench check-math farm-demo gpu-check gpu-payload extension hair-model clean
 
 $(STAMP): requirements.txt requirements-extension.txt
 	$(PYTHON_BOOTSTRAP) -m venv $(VENV)
@@ -43,7 +43,12 @@ egl-build:
 	@command -v gcc >/dev/null && test -f /usr/include/EGL/eglext.h || { \
 	  $(call apt_install,gcc libc6-dev libegl-dev); }
 
-test: $(STAMP) browser egl-build
+# The Blender LTS releases as modules for tests/test_blender_versions.py (bpy from PyPI), made once before the suite.
+BLENDER_LTS := 4.5.15 4.2.23
+blender-lts: $(STAMP)
+	@$(PY) tests/blender_environments.py $(BLENDER_LTS) >/dev/null
+
+test: $(STAMP) browser egl-build blender-lts
 	$(PY) -m pytest -q $(PYTEST_PARALLEL)
 
 test-fast: $(STAMP)
@@ -101,4 +106,4 @@ extension: $(STAMP)
 	$(PY) -m headless.build_extension --out dist
 
 clean:
-	rm -rf $(VENV) dist .pytest_cache .hypothesis
+	rm -rf $(VENV) .venv-blender dist .pytest_cache .hypothesis

@@ -52,17 +52,20 @@ LOBE_REFIT_STEPS = 150
 LIGHTMAP_SAMPLES_PRODUCTION = 64
 # Diffuse light from a Cycles diffuse bake at this many times the texel density (capture stage, irradiance_detail.py)
 # instead of the light fields' cosine-weighted mean at the texels: lamp shadows and contact shading at 4x finer
-# pixels for a bake of a few seconds. The samples per pixel of that bake, and its cost in paths per pixel sample.
-IRRADIANCE_DETAIL_SAMPLES = 128  # the direct light's, per detail pixel
-# The indirect light's, per detail pixel. Baked at the texels' resolution (1024 samples, upsampled) it blurred the
-# light that passes a leaf card or a glass sphere over a texel; at the detail's, Draft FLIP against the same light
-# fields: demo:materials 0.0325 -> 0.0321 (the leaf 0.034 -> 0.031), room 0.0561 -> 0.0551, for a bake of 13.5 s
-# (room 9.8 -> 29.9 s) (docs/design-additions.md section 50).
-IRRADIANCE_INDIRECT_SAMPLES = 256
+# pixels for a bake of a few seconds. Direct and indirect light are baked at the detail's resolution (at the texels'
+# own, the light that passes a leaf card or a glass sphere blurred over a texel: demo:materials at Draft 0.0325 ->
+# 0.0321, room 0.0561 -> 0.0551, docs/design-additions.md section 50), in one pass of this many samples per detail
+# pixel: two passes (128 samples of direct light, 256 of indirect) cost a second Cycles sync per object, on
+# demo:materials 16.9 s against 11.9 s, with more noise (the detail image's luminance against 8x the samples:
+# relative RMSE 0.042 against 0.035) (section 51).
+IRRADIANCE_DETAIL_SAMPLES = 256
 IRRADIANCE_DETAIL_MAX = 8
-# camera paths per pixel sample of both passes, at the atlas render's rate: demo:materials at Draft 7.5 M pixel
-# samples (direct and indirect) in 13.5 s, room 18.5 M in 29.9 s
+# Camera paths per pixel sample of that pass (texels x detail^2 pixels), at the atlas render's rate, and the seconds
+# each object adds (its Cycles sync, most of it the world's importance map: 4096 x 2048 for the shipped 1024 x 512
+# HDRIs; its chart's margins). At Draft: demo:materials 3.3 M pixel samples and 7 objects in 10.9 s, demo:geometry
+# 3.0 M and 29 objects in 28.7 s (room 10.4 M and 8 in 32.2 s: a closed room's paths are longer).
 IRRADIANCE_DETAIL_PATHS_PER_SAMPLE = 0.45
+IRRADIANCE_DETAIL_SYNC_S = 0.8
 PRESETS = {
     "draft": dict(texel_density=4.0, lightfield_resolution=16, samples=16, sg_count=16, training_budget_s=30.0,
                   lobe_refit_steps=LOBE_REFIT_STEPS, lightmap_samples=0, irradiance_detail=4),
@@ -333,8 +336,8 @@ class BakePlan:
         detail = self.settings.irradiance_detail
         if detail <= 1 or not self.baked_objects:
             return 0.0
-        return (self.texels * detail * detail * (IRRADIANCE_DETAIL_SAMPLES + IRRADIANCE_INDIRECT_SAMPLES)
-                * IRRADIANCE_DETAIL_PATHS_PER_SAMPLE / ATLAS_RAYS_PER_SECOND_CPU)
+        return (self.texels * detail * detail * IRRADIANCE_DETAIL_SAMPLES * IRRADIANCE_DETAIL_PATHS_PER_SAMPLE
+                / ATLAS_RAYS_PER_SECOND_CPU + IRRADIANCE_DETAIL_SYNC_S * len(self.baked_objects))
 
     def training_estimate_s(self) -> float:
         """The CNN's training: the time budget, or its epochs' expected time on 2 CPU cores."""
@@ -415,7 +418,7 @@ class BakePlan:
             detail = self.settings.irradiance_detail
             lines.append(f"diffuse light: a Cycles diffuse bake at {detail}x the texel density "
                          f"({detail * self.settings.texel_density:g} pixels/m, {IRRADIANCE_DETAIL_SAMPLES} samples of "
-                         f"direct and {IRRADIANCE_INDIRECT_SAMPLES} of indirect light)"
+                         "direct and indirect light)"
                          if detail > 1 else "diffuse light: the light fields' irradiance at the texels")
             metals = self.glossy_bounce_objects
             lines.append("light fields rendered with one diffuse bounce fewer than the scene allows"

@@ -40,8 +40,8 @@ import numpy as np
 from mathutils import Vector
 from mathutils.bvhtree import BVHTree
 
-from ..bake_directory.bake_plan import (IRRADIANCE_DETAIL_SAMPLES, IRRADIANCE_INDIRECT_SAMPLES, BakeCancelled,
-                                        BakeInputError, write_json_atomic)
+from ..bake_directory.bake_plan import (IRRADIANCE_DETAIL_SAMPLES, BakeCancelled, BakeInputError,
+                                        write_json_atomic)
 from ..bake_directory.bake_report import update_report
 from ..bake_directory.exr_io import ExrError, read_exr_metadata, write_exr
 from ..bake_directory.texel_maps import (CAPTURE_PICTURES, CHANNEL, FLAG_BURIED, FLAG_CENTRE_INSIDE, FLAG_COVERED,
@@ -717,8 +717,7 @@ def _irradiance_detail(scene, plan, out_dir, targets, tiles, atlas_shape, layout
         path.unlink(missing_ok=True)
         return {"detail": 1}
     wanted = {"plan_hash": plan.stage_hash("capture"), "detail": str(detail), "samples": str(IRRADIANCE_DETAIL_SAMPLES),
-              "indirect_samples": str(IRRADIANCE_INDIRECT_SAMPLES), "indirect_resolution": "the detail's",
-              "bounces": "the scene's, own colours",
+              "passes": "direct and indirect in one", "bounces": "the scene's, own colours",
               "kind": "irradiance_detail", "layout": layout}
     if path.is_file():
         try:
@@ -726,8 +725,7 @@ def _irradiance_detail(scene, plan, out_dir, targets, tiles, atlas_shape, layout
         except ExrError:  # unreadable: baked again
             found = {}
         if all(found.get(k) == v for k, v in wanted.items()):
-            return {"detail": detail, "samples": IRRADIANCE_DETAIL_SAMPLES,
-                    "indirect_samples": IRRADIANCE_INDIRECT_SAMPLES, "file": DETAIL_FILE, "kept": True}
+            return {"detail": detail, "samples": IRRADIANCE_DETAIL_SAMPLES, "file": DETAIL_FILE, "kept": True}
     irradiance, written, info = bake_irradiance_detail(
         scene, targets, tiles, atlas_shape, detail,
         progress=lambda fraction, message: progress(0.45 + 0.05 * fraction, message), should_cancel=should_cancel)

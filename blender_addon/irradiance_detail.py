@@ -8,9 +8,10 @@ its colour) of a white Lambertian copy of each surface, with the material's own 
 pixel for a fraction of the light fields' cost: no directions are stored, one value per pixel. It is baked into the
 same atlas layout, `detail` pixels per texel, so the baked material reads it with the atlas UV it already computes.
 
-Direct and indirect light are baked at the detail's resolution, the indirect with more samples: light that reaches a
-surface through a Translucent BSDF or glass is indirect to Cycles (a shadow ray stops there), and at the texels' own
-resolution a leaf card's light and a glass sphere's caustic blurred over 25-cm texels (docs/design-additions.md §50).
+Direct and indirect light are baked together at the detail's resolution: light that reaches a surface through a
+Translucent BSDF or glass is indirect to Cycles (a shadow ray stops there), and at the texels' own resolution a leaf
+card's light and a glass sphere's caustic blurred over 25-cm texels (docs/design-additions.md §50). One pass per
+object: each bake is a Cycles sync of the whole scene, most of it the world's importance map (§51).
 Same scene and the scene's own bounce budget (a bake point is a camera ray's hit: its paths count bounces as a
 render's do, while the light fields leave one out because their camera sits on the surface), the user's lamps and
 world as they are. The white copy shows only to the bake's own camera ray: a path that comes back to the object sees
@@ -26,7 +27,7 @@ import time
 import bpy
 import numpy as np
 
-from ..bake_directory.bake_plan import IRRADIANCE_DETAIL_SAMPLES, IRRADIANCE_INDIRECT_SAMPLES, BakeCancelled
+from ..bake_directory.bake_plan import IRRADIANCE_DETAIL_SAMPLES, BakeCancelled
 from ..bake_directory.texel_raster import dilate
 from .surface_probe import CyclesBakeSettings, bake_tile, bakes_in_place, hidden_from_rays, remove_probes
 from .surface_shaders import BAKED_BSDFS, RENDERER_LIT, LeafInputs, copy_material, rewrite_surface
@@ -68,13 +69,11 @@ def white_diffuse_material(original):
 
 
 def bake_irradiance_detail(scene, targets, tiles, atlas_shape, detail: int, samples: int = IRRADIANCE_DETAIL_SAMPLES,
-                           indirect_samples: int = IRRADIANCE_INDIRECT_SAMPLES,
                            progress=lambda fraction, message: None, should_cancel=lambda: False):
     """Irradiance E (W/m^2 per unit radiance, as the light fields' quadrature gives it) of the capture `targets`, each
-    baked into its tile (capture.ObjectTile) at `detail` pixels per texel: the direct light with `samples`, the
-    indirect light with `indirect_samples`, added. Returns
-    ((H * detail, W * detail, 3) float32 E, row 0 = the atlas' top; (H * detail, W * detail) mask of the pixels a
-    bake wrote; {'seconds', 'samples', ...})."""
+    baked into its tile (capture.ObjectTile) at `detail` pixels per texel, direct and indirect light with `samples`.
+    Returns ((H * detail, W * detail, 3) float32 E, row 0 = the atlas' top; (H * detail, W * detail) mask of the pixels
+    a bake wrote; {'seconds', 'samples', ...})."""
     start = time.perf_counter()
     height, width = atlas_shape[0] * detail, atlas_shape[1] * detail
     irradiance = np.zeros((height, width, 3), np.float32)
@@ -96,22 +95,18 @@ def bake_irradiance_detail(scene, targets, tiles, atlas_shape, detail: int, samp
             # a copy baked in the object's place: the original (all its instances) leaves the rays to it
             with contextlib.nullcontext() if bakes_in_place(target) else hidden_from_rays(target.obj):
                 with CyclesBakeSettings(scene, samples):  # a margin of one texel's pixels: half the gutter each side
-                    direct = bake_tile(scene, target, tile, image, white_for_slot, bake_type="DIFFUSE",
-                                       pass_filter={"DIRECT"}, scale=detail, margin=detail)
-                with CyclesBakeSettings(scene, indirect_samples):
-                    indirect = bake_tile(scene, target, tile, image, white_for_slot, bake_type="DIFFUSE",
-                                         pass_filter={"INDIRECT"}, scale=detail, margin=2 * detail)
+                    light = bake_tile(scene, target, tile, image, white_for_slot, bake_type="DIFFUSE",
+                                      pass_filter={"DIRECT", "INDIRECT"}, scale=detail, margin=detail)
             x, y, w, h = (int(v) * detail for v in tile.pixel_rect)
-            mine = direct[..., 3] > 0
+            mine = light[..., 3] > 0
             block = irradiance[y:y + h, x:x + w]
-            light = direct[..., :3] + filled(indirect[..., :3], indirect[..., 3] > 0, 2 * detail)
-            block[mine] = light[mine] * math.pi  # the passes are E / pi: a white Lambertian's radiance
+            block[mine] = light[..., :3][mine] * math.pi  # the pass is E / pi: a white Lambertian's radiance
             written[y:y + h, x:x + w] |= mine
     finally:
         remove_probes(whites.values(), created_groups, image)
     irradiance = np.nan_to_num(np.maximum(irradiance, 0.0), nan=0.0, posinf=0.0)
     return irradiance, written, {"seconds": round(time.perf_counter() - start, 3), "samples": samples,
-                                 "indirect_samples": indirect_samples, "detail": detail, "size": [width, height]}
+                                 "detail": detail, "size": [width, height]}
 
 
 def filled(irradiance: np.ndarray, written: np.ndarray, rings: int) -> np.ndarray:

@@ -1,5 +1,6 @@
 """Blender releases other than the pinned bpy: the LTS releases as Python modules (bpy 4.2 and 4.5 on PyPI for
-Python 3.11), each in an environment of its own under .venv-blender/ (made on first use), run the pipeline through
+Python 3.11), each in an environment of its own under .venv-blender/ (tests/blender_environments.py: made by
+`make test` before the suite, or here on first use), run the pipeline through
 tests/blender_version_check.py. 4.5 runs all of it; 4.2 is refused with one clear sentence, because Cycles' custom
 OSL camera, which renders the light fields, first shipped in 4.5. The manifest's blender_version_min says the same."""
 import json
@@ -13,29 +14,10 @@ import pytest
 
 from sg_lightfield.blender_addon.scene_analysis import MIN_BLENDER, require_blender_version
 from sg_lightfield.bake_directory.bake_plan import BakeInputError
+from tests.blender_environments import blender_module_python
 
 REPO = Path(__file__).resolve().parent.parent
-ENVIRONMENTS = REPO / ".venv-blender"
-# what the pipeline imports inside Blender besides bpy (pinned as in requirements.txt)
-PACKAGES = ["numpy==1.26.4", "openexr==3.5.3", "xatlas==0.0.11", "pillow==11.3.0", "onnxruntime==1.31.1",
-            "flip-evaluator==1.7", "scipy==1.13.1"]
-
-
-def blender_module_python(version: str) -> Path:
-    """A Python 3.11 with bpy==version and the pipeline's packages (made once, reused)."""
-    venv = ENVIRONMENTS / version
-    python = venv / "bin" / "python"
-    marker = venv / ".complete"
-    if not marker.is_file():
-        subprocess.run([sys.executable, "-m", "venv", "--clear", str(venv)], check=True)
-        base = subprocess.run([str(python), "-c", "import sys; print(sys.version_info[:2])"], capture_output=True,
-                              text=True)
-        assert base.stdout.strip() == "(3, 11)", base
-        install = subprocess.run([str(python), "-m", "pip", "install", "--quiet", f"bpy=={version}", *PACKAGES],
-                                 capture_output=True, text=True)
-        assert install.returncode == 0, install.stderr[-2000:]
-        marker.write_text(version)
-    return python
+LTS_RELEASES = ("4.5.15", "4.2.23")  # the Makefile's BLENDER_LTS
 
 
 def run_check(version: str, out: Path, extension_zip: Path | None = None) -> dict:
@@ -65,7 +47,7 @@ def test_the_minimum_blender_is_the_one_with_the_custom_osl_camera():
 def test_blender_4_5_lts_installs_the_extension_and_bakes_end_to_end(tmp_path):
     from sg_lightfield.headless.build_extension import build
 
-    steps = run_check("4.5.15", tmp_path, build(tmp_path / "dist", platform="linux-x64"))
+    steps = run_check(LTS_RELEASES[0], tmp_path, build(tmp_path / "dist", platform="linux-x64"))
     failed = {name: entry["error"] for name, entry in steps.items() if not entry["ok"]}
     assert not failed and len(steps) == 5, (failed, list(steps))
     bake = steps["bake spheres"]["detail"]
@@ -76,7 +58,7 @@ def test_blender_4_5_lts_installs_the_extension_and_bakes_end_to_end(tmp_path):
 
 @pytest.mark.slow
 def test_blender_4_2_lts_is_told_which_release_the_bake_needs(tmp_path):
-    steps = run_check("4.2.23", tmp_path)
+    steps = run_check(LTS_RELEASES[1], tmp_path)
     assert steps["register"]["ok"]  # the add-on loads; the bake says why it cannot run
     for name in ("bake spheres", "capture demo:materials", "capture demo:geometry"):
         assert not steps[name]["ok"]

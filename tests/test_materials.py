@@ -251,9 +251,11 @@ def test_textured_colour_roughness_and_normal_keep_driving_the_baked_copy(tmp_pa
     tree.links.new(bump.outputs["Normal"], bsdf.inputs["Normal"])
     plane = _plane("Textured Plane", mat)
     scene = _lit_scene(plane)
+    scene.world.cycles.sampling_method = "MANUAL"  # the probes' bakes turn the world's sampling off, then back
     before, mesh_before = _material_fingerprint(mat), mesh_fingerprint(plane.data)
     plan = _bake(scene, tmp_path, texel_density=8.0)
     assert plan.objects[0].materials[0].textured == ["Base Color", "Normal", "Roughness"]
+    assert scene.world.cycles.sampling_method == "MANUAL"
 
     atlas, info = read_texel_maps(tmp_path, plan.stage_hash("capture"))
     valid = channels(atlas, "valid") > 0
