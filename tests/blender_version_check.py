@@ -68,9 +68,10 @@ def bake_spheres():
     job = BakeJob(scene, settings, OUT / "spheres", stages=("capture", "render", "train", "apply"), training="worker")
     job.run()
     errors = evaluate_stage(scene, job.plan, OUT / "spheres", views=1, resolution=(64, 36), reference_samples=16)
-    eevee = errors.get("eevee") or {}
+    eevee, alone = errors.get("eevee") or {}, errors.get("eevee_without_bake") or {}
     return {"training_python": job.training_python, "flip": errors["flip"], "eevee_flip": eevee.get("flip"),
-            "eevee_error": eevee.get("error")}
+            "eevee_error": eevee.get("error"), "eevee_alone_flip": alone.get("flip"),
+            "eevee_alone_error": alone.get("error")}
 
 
 def capture_scene(name):

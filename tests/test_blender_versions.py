@@ -53,6 +53,8 @@ def test_blender_4_5_lts_installs_the_extension_and_bakes_end_to_end(tmp_path):
     bake = steps["bake spheres"]["detail"]
     assert bake["training_python"] == "SGLF_TORCH_PYTHON" and 0 < bake["flip"] < 0.5
     assert bake["eevee_error"] is None and 0 < bake["eevee_flip"] < 0.5  # EEVEE of 4.5 ("EEVEE Next") renders it
+    # and EEVEE alone, its light probes baked by 4.5's own bake, for the comparison
+    assert bake["eevee_alone_error"] is None and 0 < bake["eevee_alone_flip"] < 1
     assert steps["capture demo:geometry"]["detail"]["texels"] > 0
 
 
