@@ -164,17 +164,19 @@ class CyclesBakeSettings:
     def __enter__(self):
         render, cycles, world = self.scene.render, self.scene.cycles, self.scene.world
         self.saved = (render.engine, cycles.samples, cycles.use_denoising)
-        self.saved_world_sampling = world.cycles.sampling_method if world is not None else None
         render.engine, cycles.samples, cycles.use_denoising = "CYCLES", self.samples, False
+        self.saved_world_sampling = None  # (world, its sampling method) where the block turned it off
         if world is not None and world.library is None and not self.traces_light:
+            self.saved_world_sampling = (world, world.cycles.sampling_method)
             world.cycles.sampling_method = "NONE"
         return self
 
     def __exit__(self, *exc):
-        render, cycles, world = self.scene.render, self.scene.cycles, self.scene.world
+        render, cycles = self.scene.render, self.scene.cycles
         render.engine, cycles.samples, cycles.use_denoising = self.saved
-        if world is not None and self.saved_world_sampling is not None:
-            world.cycles.sampling_method = self.saved_world_sampling
+        if self.saved_world_sampling is not None:
+            world, method = self.saved_world_sampling
+            world.cycles.sampling_method = method
 
 
 def remove_probes(materials, groups, image):
