@@ -293,13 +293,14 @@ def _reference_key(camera, resolution, reference_samples) -> tuple:
 
 def evaluate_stage(scene, plan, out_dir, *, views: int = EVALUATE_VIEWS, resolution=None,
                    reference_samples: int = 128, test_samples: int | None = None, with_eevee: bool = True,
-                   reference_cache: dict | None = None) -> dict:
+                   eevee_without_bake: bool = True, reference_cache: dict | None = None) -> dict:
     """test_samples defaults to reference_samples: surfaces the bake does not replace (emitters, rough materials
     left to the renderer) are still path traced in the test render, and must be as converged as in the reference
     to compare fairly. reference_cache: a dict the caller keeps between evaluations of bakes of one unchanged
     scene (the bench's trainings of one encoder); each view's two reference halves and surface images are
     rendered once per camera placement, image size and samples and reused from it. resolution: (width, height),
-    by default evaluation_resolution(scene)."""
+    by default evaluation_resolution(scene). eevee_without_bake: also render EEVEE alone, what a user compares with
+    (False leaves errors.eevee_without_bake empty: a check of the bake's own error only)."""
     test_samples = test_samples or reference_samples
     resolution = tuple(resolution or evaluation_resolution(scene))
     start = time.perf_counter()
@@ -360,7 +361,7 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = EVALUATE_VIEWS, resolut
                                 "flip": mean_flip, "reference_noise_rmse": noise, "picture": picture})
             if with_eevee:
                 eevee = _evaluate_eevee(scene, cameras, references, tests, out_dir, Path(tmp), roughness_maps,
-                                        (material_maps, material_names))
+                                        (material_maps, material_names), without_bake=eevee_without_bake)
     finally:
         for camera, temporary in cameras:
             if temporary:
@@ -391,7 +392,7 @@ def evaluate_stage(scene, plan, out_dir, *, views: int = EVALUATE_VIEWS, resolut
 
 
 def _evaluate_eevee(scene, cameras, references, cycles_tests, out_dir: Path, work_dir: Path, roughness_maps,
-                    materials) -> dict:
+                    materials, without_bake: bool = True) -> dict:
     """EEVEE against the reference and against Cycles' evaluation of the same baked nodes; pictures per view.
     A failure to render with EEVEE (no OpenGL on the machine) is reported, not raised."""
     try:
@@ -420,8 +421,9 @@ def _evaluate_eevee(scene, cameras, references, cycles_tests, out_dir: Path, wor
     # Surfaces the bake leaves alone (rough materials with --rough-materials renderer) are lit by EEVEE itself,
     # which has no light from emissive meshes without its ray tracing: parity with Cycles' evaluation is per class.
     summary["flip_by_material"] = flip_by_material(flip_maps, *materials)
-    summary["without_bake"] = _evaluate_eevee_without_bake(scene, cameras, references, images, out_dir, work_dir,
-                                                           materials)
+    if without_bake:
+        summary["without_bake"] = _evaluate_eevee_without_bake(scene, cameras, references, images, out_dir, work_dir,
+                                                               materials)
     summary.update(views=views, samples=EEVEE_SAMPLES, flip_by_roughness=flip_by_roughness(flip_maps, roughness_maps),
                    flip_vs_cycles_bake_by_roughness=flip_by_roughness(parity_maps, roughness_maps),
                    shader_errors=failed, first_render_s=seconds[0] if seconds else None,

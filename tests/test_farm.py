@@ -20,9 +20,10 @@ REPO = Path(__file__).resolve().parent.parent
 TEMPLATE = REPO / "farm" / "openjd" / "sg_lightfield_bake.yaml"
 FLAMENCO = REPO / "farm" / "flamenco" / "sg_lightfield_bake.js"
 OPENJD = Path(sys.executable).parent / "openjd"
-# small enough for the suite, with enough tiles that each of 3 render tasks gets some
+# small enough for the suite, with enough tiles that each of 3 render tasks gets some; the evaluation by Cycles only
+# (a farm node without OpenGL; EEVEE's evaluation has tests of its own)
 SETTINGS = {"samples": 4, "texel-density": 2, "lightfield-resolution": 8, "training-budget": 3,
-            "lobe-refit-steps": 10, "reference-samples": 16}
+            "lobe-refit-steps": 10, "reference-samples": 16, "no-eevee-evaluation": True}
 TILE_MEGAPIXELS = "0.002"  # the spheres' texels alone in six or more tiles (the lightmap-only floor has no light field)
 
 
@@ -175,6 +176,7 @@ def test_a_settings_file_gives_every_task_the_same_quality_options_and_the_comma
                      "--samples", "8"])
     assert (ns.samples, ns.texel_density, ns.lightfield_resolution, ns.training_budget_s) == (8, 2.0, 8, 3.0)
     assert ns.uniform_sg_count is False and ns.preset == "preview" and ns.reference_samples == 16
+    assert ns.no_eevee_evaluation is True  # a true flag in the file is the option given
     assert parse_args(["--scene", "demo:spheres", "--out", str(tmp_path), "--settings="]).samples is None  # empty
     for bad, message in (({"out": "/elsewhere"}, "'out' is not a quality option"),
                          ({"samples": [1, 2]}, "'samples' must be a number, a word or true/false"),
