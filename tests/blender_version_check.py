@@ -6,6 +6,7 @@ tests/test_blender_versions.py; each step reports "ok" or its error, so one fail
 import json
 import os
 import sys
+import time
 import traceback
 from pathlib import Path
 
@@ -19,9 +20,11 @@ OUT = Path(sys.argv[1])
 
 
 def step(name, action):
+    start = time.perf_counter()
     try:
         detail = action()
-        print(json.dumps({"step": name, "ok": True, "detail": detail}), flush=True)
+        print(json.dumps({"step": name, "ok": True, "detail": detail,
+                          "seconds": round(time.perf_counter() - start, 1)}), flush=True)
         return True
     except Exception as error:  # noqa: BLE001 - every failure is reported, the next step still runs
         print(json.dumps({"step": name, "ok": False, "error": f"{type(error).__name__}: {error}",

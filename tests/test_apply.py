@@ -274,7 +274,8 @@ def test_write_back_remove_restores_everything_and_rebake_does_not_pile_up(tmp_p
     from sg_lightfield.blender_addon.evaluate import EEVEE_LEFT_OUT, evaluate_stage
 
     objects_before = set(bpy.data.objects.keys())
-    errors = evaluate_stage(scene, plan, tmp_path, views=2, resolution=(32, 18), reference_samples=8)
+    errors = evaluate_stage(scene, plan, tmp_path, views=2, resolution=(32, 18), reference_samples=8,
+                            eevee_without_bake=False)
     assert len(errors["views"]) == 2 and all(np.isfinite(errors[k]) for k in ("rmse", "psnr", "flip"))
     assert 0 <= errors["flip"] <= 1 and (tmp_path / "evaluate_view1.png").is_file()
     classes = errors["flip_by_roughness"]  # glossy 0.2 ball and its twin vs the rough 0.8 floor
