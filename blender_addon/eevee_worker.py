@@ -15,6 +15,9 @@ with Blender's own light-probe bake; with the bake, it lights what the bake leav
 cut-outs, the coat over a baked base).
 --without-bake also gives the baked slots their original materials back (the scene's bake record): EEVEE alone,
 the comparison a user makes. Only the worker's copy of the scene changes.
+--world-probe-too renders every EEVEE view a second time with the sphere probe removed (reflections from the world's
+probe, where screen tracing misses), into {ENGINE}_{k}_world_probe.exr, printing "SECONDS_WORLD_PROBE ENGINE k
+seconds": which of the two is better depends on the scene (docs §53), and the caller keeps the better one.
 """
 import argparse
 import json
@@ -26,6 +29,7 @@ from mathutils import Vector
 
 BAKE_RECORD_KEY = "sglf_bake"  # blender_addon/apply.py: {object: {slot index: original material}}
 PROBE_MARGIN = 1.1  # the volume probe covers the scene's bounding box and 10 % more
+SPHERE_PROBE = "SGLF sphere probe"
 
 
 def restore_originals(scene):
@@ -86,9 +90,9 @@ def best_lighting(scene):
         volume_data.capture_emission = True
     volume = bpy.data.objects.new("SGLF volume probe", volume_data)
     volume.location, volume.scale = centre, [max(h, 1e-3) for h in half]
-    sphere_data = bpy.data.lightprobes.new("SGLF sphere probe", "SPHERE")
+    sphere_data = bpy.data.lightprobes.new(SPHERE_PROBE, "SPHERE")
     sphere_data.influence_distance = max(half) * 2
-    sphere = bpy.data.objects.new("SGLF sphere probe", sphere_data)
+    sphere = bpy.data.objects.new(SPHERE_PROBE, sphere_data)
     sphere.location = centre
     for probe in (volume, sphere):
         scene.collection.objects.link(probe)
@@ -115,6 +119,7 @@ def main(argv):
     p.add_argument("--samples", type=int, default=16)
     p.add_argument("--best-lighting", action="store_true")
     p.add_argument("--without-bake", action="store_true")
+    p.add_argument("--world-probe-too", action="store_true")
     ns = p.parse_args(argv)
     if bpy.data.filepath != ns.blend:
         bpy.ops.wm.open_mainfile(filepath=ns.blend)
@@ -133,12 +138,22 @@ def main(argv):
             scene.cycles.samples, scene.cycles.use_denoising = ns.samples * 4, False
         else:
             scene.eevee.taa_render_samples = ns.samples
-        for k, camera in enumerate(cameras):
-            scene.camera = camera
-            scene.render.filepath = f"{ns.out}/{engine}_{k}.exr"
-            start = time.perf_counter()
-            bpy.ops.render.render(write_still=True, scene=scene.name)
-            print(f"SECONDS {engine} {k} {time.perf_counter() - start:.3f}", flush=True)
+        render_views(scene, cameras, f"{ns.out}/{engine}", "SECONDS", engine)
+    if ns.world_probe_too and SPHERE_PROBE in bpy.data.objects:
+        bpy.data.objects.remove(bpy.data.objects[SPHERE_PROBE])
+        for engine in ns.engines.split(","):
+            if engine != "CYCLES":
+                scene.render.engine = eevee_engine(engine)
+                render_views(scene, cameras, f"{ns.out}/{engine}", "SECONDS_WORLD_PROBE", engine, "_world_probe")
+
+
+def render_views(scene, cameras, prefix, tag, engine, suffix=""):
+    for k, camera in enumerate(cameras):
+        scene.camera = camera
+        scene.render.filepath = f"{prefix}_{k}{suffix}.exr"
+        start = time.perf_counter()
+        bpy.ops.render.render(write_still=True, scene=scene.name)
+        print(f"{tag} {engine} {k} {time.perf_counter() - start:.3f}", flush=True)
 
 
 if __name__ == "__main__":

@@ -12,7 +12,8 @@ it needs an OpenGL context), with ray tracing and baked light probes lighting wh
 its error against the reference, its difference from Cycles' evaluation of the same nodes, its first-render time
 (shader compilation and the probe bake included) and pictures reference | EEVEE | FLIP. EEVEE without the bake, set
 up the same way, is what a user compares with (errors.eevee_without_bake; pictures reference | EEVEE alone | EEVEE
-with the bake).
+with the bake). Each side renders with a sphere probe at the scene's centre and with the world's probe alone, and
+keeps the better (probe_setup, flip_by_probe_setup): which helps depends on the scene (docs §53).
 Nothing of the scene changes: temporary cameras and material swaps are undone before returning.
 The bake's own evaluation uses reference_samples_for(settings).
 """
@@ -229,19 +230,34 @@ def shader_errors(log: str) -> list[str]:
     return list(dict.fromkeys(f"{m['material'].strip()}: {m['message'].strip()}" for m in SHADER_ERROR.finditer(log)))
 
 
+SPHERE_PROBE_SETUP = "a sphere probe at the scene's centre"
+WORLD_PROBE_SETUP = "reflections from the world's probe (no sphere probe)"
+
+
 def render_eevee(scene, camera_names, work_dir: Path, samples: int = EEVEE_SAMPLES, timeout_s: float = 900.0,
                  without_bake: bool = False, best_lighting: bool = False):
     """EEVEE renders of the scene as it is now, one per camera, by a separate process working on a saved copy:
     ([(H, W, 3) images], [seconds per render], [materials whose shaders failed to compile, with the reason]).
     The first render's time includes shader compilation. without_bake: EEVEE as well as Blender allows without the
     bake (original materials, ray tracing, baked volume and sphere probes: eevee_worker.py); best_lighting: that
-    lighting for the scene as it is (what the bake leaves to the renderer gets it)."""
+    lighting for the scene as it is (what the bake leaves to the renderer gets it). The renders as set up, sphere
+    probe or none."""
+    by_setup, seconds, failed = render_eevee_setups(scene, camera_names, work_dir, samples, timeout_s, without_bake,
+                                                    best_lighting, world_probe_too=False)
+    return by_setup[SPHERE_PROBE_SETUP], seconds, failed
+
+
+def render_eevee_setups(scene, camera_names, work_dir: Path, samples: int = EEVEE_SAMPLES, timeout_s: float = 900.0,
+                        without_bake: bool = False, best_lighting: bool = True, world_probe_too: bool = True):
+    """render_eevee, and with world_probe_too (and the best lighting) each view again without the sphere probe:
+    ({SPHERE_PROBE_SETUP: [images], WORLD_PROBE_SETUP: [images]}, seconds, failed). Which is better depends on the
+    scene (docs §53: the probe helps demo:spheres and demo:room, harms demo:materials, courtyard and geometry)."""
     blend = work_dir / "eevee_views.blend"
     with active_scene(scene), quiet_stdout():
         bpy.ops.wm.save_as_mainfile(filepath=str(blend), copy=True)
     arguments = [str(blend), scene.name, str(work_dir), "--cameras", ",".join(camera_names),
                  "--samples", str(samples)] + (["--without-bake"] if without_bake else []) \
-        + (["--best-lighting"] if best_lighting else [])
+        + (["--best-lighting"] if best_lighting else []) + (["--world-probe-too"] if world_probe_too else [])
     if bpy.app.binary_path:  # inside Blender: a background Blender runs the worker
         command = [bpy.app.binary_path, "-b", "--factory-startup", "--python", str(EEVEE_WORKER), "--", *arguments]
     else:  # bpy as a module: the same Python runs it
@@ -255,9 +271,22 @@ def render_eevee(scene, camera_names, work_dir: Path, samples: int = EEVEE_SAMPL
     probe_bake = re.search(r"^PROBE BAKE SECONDS ([0-9.]+)$", out.stdout, re.M)
     if probe_bake and seconds:  # the probe bake compiled the shaders the first render would have
         seconds[0] += float(probe_bake.group(1))
-    images = [read_exr(work_dir / f"BLENDER_EEVEE_{k}.exr", channels=["R", "G", "B"])[0].astype(np.float64)
-              for k in range(len(camera_names))]
-    return images, seconds, shader_errors(out.stdout + "\n" + out.stderr)
+    by_setup = {}
+    for setup, suffix in ((SPHERE_PROBE_SETUP, ""), (WORLD_PROBE_SETUP, "_world_probe")):
+        paths = [work_dir / f"BLENDER_EEVEE_{k}{suffix}.exr" for k in range(len(camera_names))]
+        if all(path.is_file() for path in paths):  # no sphere probe where the scene has no mesh
+            by_setup[setup] = [read_exr(path, channels=["R", "G", "B"])[0].astype(np.float64) for path in paths]
+    return by_setup, seconds, shader_errors(out.stdout + "\n" + out.stderr)
+
+
+def best_setup(by_setup: dict, references) -> tuple[str, list, dict]:
+    """The probe setup whose EEVEE views have the lowest mean FLIP against the references, as a user keeps the
+    better-looking one: (its name, its images, {setup: mean FLIP})."""
+    scores = {setup: float(np.mean([flip(tonemap(reference), tonemap(image))[0]
+                                    for image, reference in zip(images, references)]))
+              for setup, images in by_setup.items()}
+    chosen = min(scores, key=scores.get)
+    return chosen, by_setup[chosen], scores
 
 
 REFERENCE_SAMPLES_MIN = 128
@@ -396,10 +425,10 @@ def _evaluate_eevee(scene, cameras, references, cycles_tests, out_dir: Path, wor
     """EEVEE against the reference and against Cycles' evaluation of the same baked nodes; pictures per view.
     A failure to render with EEVEE (no OpenGL on the machine) is reported, not raised."""
     try:
-        images, seconds, failed = render_eevee(scene, [camera.name for camera, _ in cameras], work_dir,
-                                               best_lighting=True)
+        by_setup, seconds, failed = render_eevee_setups(scene, [camera.name for camera, _ in cameras], work_dir)
     except (RuntimeError, OSError, subprocess.TimeoutExpired) as exc:
         return {"error": str(exc)}
+    setup, images, flip_by_setup = best_setup(by_setup, references)
     views, flip_maps, parity_maps = [], [], []
     for k, (image, reference, cycles) in enumerate(zip(images, references, cycles_tests)):
         ref_ldr, eevee_ldr = tonemap(reference), tonemap(image)
@@ -426,7 +455,8 @@ def _evaluate_eevee(scene, cameras, references, cycles_tests, out_dir: Path, wor
                                                                materials)
     summary.update(views=views, samples=EEVEE_SAMPLES, flip_by_roughness=flip_by_roughness(flip_maps, roughness_maps),
                    flip_vs_cycles_bake_by_roughness=flip_by_roughness(parity_maps, roughness_maps),
-                   shader_errors=failed, first_render_s=seconds[0] if seconds else None,
+                   shader_errors=failed, probe_setup=setup, flip_by_probe_setup=flip_by_setup,
+                   first_render_s=seconds[0] if seconds else None,
                    later_render_s=float(np.mean(seconds[1:])) if len(seconds) > 1 else None)
     return summary
 
@@ -436,10 +466,11 @@ def _evaluate_eevee_without_bake(scene, cameras, references, baked_images, out_d
     """EEVEE without the bake, set up as well as Blender allows (render_eevee without_bake), against the same
     reference; pictures per view: Cycles reference | EEVEE alone | EEVEE with the bake. A failure is reported."""
     try:
-        images, seconds, failed = render_eevee(scene, [camera.name for camera, _ in cameras], work_dir,
-                                               without_bake=True)
+        by_setup, seconds, failed = render_eevee_setups(scene, [camera.name for camera, _ in cameras], work_dir,
+                                                        without_bake=True, best_lighting=False)
     except (RuntimeError, OSError, subprocess.TimeoutExpired) as exc:
         return {"error": str(exc)}
+    setup, images, flip_by_setup = best_setup(by_setup, references)
     views, flip_maps = [], []
     for k, (image, reference, baked) in enumerate(zip(images, references, baked_images)):
         ref_ldr, alone_ldr, baked_ldr = tonemap(reference), tonemap(image), tonemap(baked)
@@ -454,5 +485,5 @@ def _evaluate_eevee_without_bake(scene, cameras, references, baked_images, out_d
     return {"flip": float(np.mean([v["flip"] for v in views])), "psnr": float(np.mean([v["psnr"] for v in views])),
             "views": views, "flip_by_material": flip_by_material(flip_maps, *materials),
             "setup": "original materials; screen-space ray tracing and fast GI; a volume probe over the scene "
-                     "(emission captured) and a sphere probe, baked by Blender",
-            "shader_errors": failed, "render_s": seconds}
+                     f"(emission captured) baked by Blender; {setup}, the better of the two",
+            "probe_setup": setup, "flip_by_probe_setup": flip_by_setup, "shader_errors": failed, "render_s": seconds}

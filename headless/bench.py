@@ -32,11 +32,12 @@ writes them to bench_out/bench.json; bench_out/results.md shows the plots first,
             otherwise; the CNN trained 3 times (seeds; --quick: once) and averaged. Target: >= 2x lower RMSE.
   materials demo:materials (textured, bump-mapped, mixed, grouped and emissive materials beside glass, alpha and coat
             left to the renderer) at Draft and Preview (--quick: Draft): FLIP of EEVEE with the bake and of EEVEE
-            without it (ray tracing, baked volume and sphere probes) against the Cycles reference, overall and per
-            material; and the same scene with every texture replaced by its mean over the surface (measured by
-            Cycles). Targets: EEVEE without the bake / with it >= 2; textured / mean-textured bake FLIP <= 1.2.
-            Beside them the textured bake with irradiance detail 1 (diffuse light from the light fields), on the
-            same light fields and SGs: the cost and gain of the preset's detail image.
+            without it (ray tracing, a baked volume probe, the better of a sphere probe or none) against the
+            Cycles reference, overall and per material; and the same scene with every texture replaced by its
+            mean over the surface (measured by Cycles). Targets: EEVEE without the bake / with it >= 2;
+            textured / mean-textured bake FLIP <= 1.2. Beside them the textured bake with irradiance detail 1
+            (diffuse light from the light fields), on the same light fields and SGs: the cost and gain of the
+            preset's detail image.
   geometry  demo:geometry (a smooth monkey, a live Bevel + Array + Subdivision stack, extruded text, a bevelled
             curve, node and collection instances, a metaball, a NURBS surface, particles as object copies) at Draft:
             per object its geometry, texels, capture seconds and the FLIP of EEVEE with and without the bake, per

@@ -10,6 +10,7 @@ import pytest
 
 from sg_lightfield.blender_addon.apply import BAKE_RECORD_KEY, apply_stage, baked_groups, remove_bake
 from sg_lightfield.blender_addon.capture import capture
+from sg_lightfield.blender_addon.evaluate import SPHERE_PROBE_SETUP, WORLD_PROBE_SETUP
 from sg_lightfield.blender_addon.render import quiet_stdout, render_stage
 from sg_lightfield.blender_addon.scene_analysis import active_scene, analyse_material, build_plan, enable_nodes
 from sg_lightfield.bake_directory.bake_plan import BakeSettings
@@ -603,6 +604,11 @@ def test_the_materials_demo_bakes_keeps_every_look_and_compares_with_eevee_alone
     assert (tmp_path / "evaluate_view0_three_way.png").is_file()
     assert {"Checker Floor", "Glass"} <= {base_name(k) for k in alone["flip_by_material"]}
     assert "Checker Floor" in {base_name(k) for k in eevee["flip_by_material"]}
+    for side in (alone, eevee):  # each side's better probe setup, both measured (docs §53)
+        scores = side["flip_by_probe_setup"]
+        assert set(scores) == {SPHERE_PROBE_SETUP, WORLD_PROBE_SETUP} and scores[side["probe_setup"]] == min(
+            scores.values()) and side["flip"] == pytest.approx(scores[side["probe_setup"]])
+    assert alone["probe_setup"] in alone["setup"]
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["errors"]["eevee_without_bake"]["flip"] == alone["flip"]
 
