@@ -253,6 +253,8 @@ def render_eevee_setups(scene, camera_names, work_dir: Path, samples: int = EEVE
     ({SPHERE_PROBE_SETUP: [images], WORLD_PROBE_SETUP: [images]}, seconds, failed). Which is better depends on the
     scene (docs §53: the probe helps demo:spheres and demo:room, harms demo:materials, courtyard and geometry)."""
     blend = work_dir / "eevee_views.blend"
+    for stale in work_dir.glob("BLENDER_EEVEE_*.exr"):  # an earlier call's renders in the same folder
+        stale.unlink()
     with active_scene(scene), quiet_stdout():
         bpy.ops.wm.save_as_mainfile(filepath=str(blend), copy=True)
     arguments = [str(blend), scene.name, str(work_dir), "--cameras", ",".join(camera_names),
@@ -271,11 +273,13 @@ def render_eevee_setups(scene, camera_names, work_dir: Path, samples: int = EEVE
     probe_bake = re.search(r"^PROBE BAKE SECONDS ([0-9.]+)$", out.stdout, re.M)
     if probe_bake and seconds:  # the probe bake compiled the shaders the first render would have
         seconds[0] += float(probe_bake.group(1))
-    by_setup = {}
-    for setup, suffix in ((SPHERE_PROBE_SETUP, ""), (WORLD_PROBE_SETUP, "_world_probe")):
-        paths = [work_dir / f"BLENDER_EEVEE_{k}{suffix}.exr" for k in range(len(camera_names))]
-        if all(path.is_file() for path in paths):  # no sphere probe where the scene has no mesh
-            by_setup[setup] = [read_exr(path, channels=["R", "G", "B"])[0].astype(np.float64) for path in paths]
+    def views(suffix):
+        return [read_exr(work_dir / f"BLENDER_EEVEE_{k}{suffix}.exr", channels=["R", "G", "B"])[0].astype(np.float64)
+                for k in range(len(camera_names))]
+
+    by_setup = {SPHERE_PROBE_SETUP: views("")}  # a missing render raises here (OSError), as before
+    if all((work_dir / f"BLENDER_EEVEE_{k}_world_probe.exr").is_file() for k in range(len(camera_names))):
+        by_setup[WORLD_PROBE_SETUP] = views("_world_probe")  # none where the scene has no mesh, hence no probe
     return by_setup, seconds, shader_errors(out.stdout + "\n" + out.stderr)
 
 
