@@ -95,8 +95,14 @@ CAPTURE_S_PER_TEXEL = 5e-5
 APPLY_S_PER_TEXEL = 2.5e-4
 AMPLITUDE_REFIT_S_PER_TEXEL = 0.009
 LOBE_REFIT_S_PER_TEXEL_STEP = 0.025 / 150
-EVALUATE_PATHS_PER_PIXEL_SAMPLE = 2.5
-EEVEE_EVALUATE_S = 15.0
+# The evaluate stage per pixel, in atlas-render paths: per sample of the baked scene (its SG node groups included)
+# and per reference sample (the original materials). Measured on `room` at Draft: 3.1 and 0.73 (spheres 0.69 and
+# 0.23; materials 7.1 and 0.11, its node groups the largest). Docs §54.
+EVALUATE_PATHS_PER_TEST_SAMPLE = 3.1
+REFERENCE_PATHS_PER_SAMPLE = 0.73
+# Two EEVEE processes (with the bake, alone), each baking its probes, compiling shaders and rendering both probe
+# set-ups: about 100 s on `spheres` and `room` at Draft.
+EEVEE_EVALUATE_S = 100.0
 
 
 # Beyond this many SGs, with the irradiance detail image's lookup beside them, Cycles renders the baked copies of
@@ -349,9 +355,12 @@ class BakePlan:
         texels = self.texels - self.lightmap_only_texels  # the texels that get SGs
         return fits * epochs * texels * TRAIN_S_PER_TEXEL_EPOCH_CPU * scale
 
-    def stage_estimates_s(self, reference_samples: int = 0, evaluate_pixels: int = 0) -> dict[str, float]:
+    def stage_estimates_s(self, reference_samples: int = 0, evaluate_pixels: int = 0,
+                          test_samples: int | None = None, with_eevee: bool = True) -> dict[str, float]:
         """Expected seconds of each stage on 2 CPU cores: the progress bar's weights, and the ETA of the stages not
-        begun. evaluate_pixels: the evaluate stage's pixels over all its views."""
+        begun. evaluate_pixels: the evaluate stage's pixels over all its views; test_samples: the baked scene's
+        render's samples (by default the reference's)."""
+        test_samples = reference_samples if test_samples is None else test_samples
         least = refit_min_roughness(self.settings.lightfield_resolution)
         refitted = sum(o.texels for o in self.baked_objects
                        if any(m.glossy and (m.roughness >= least or "Roughness" in m.textured) for m in o.materials))
@@ -360,8 +369,8 @@ class BakePlan:
                 "render": self.render_estimate_s(),
                 "train": self.training_estimate_s() + refits,
                 "apply": 1.0 + APPLY_S_PER_TEXEL * self.texels,
-                "evaluate": EEVEE_EVALUATE_S + EVALUATE_PATHS_PER_PIXEL_SAMPLE * evaluate_pixels * reference_samples
-                / ATLAS_RAYS_PER_SECOND_CPU}
+                "evaluate": EEVEE_EVALUATE_S * with_eevee + evaluate_pixels / ATLAS_RAYS_PER_SECOND_CPU
+                * (EVALUATE_PATHS_PER_TEST_SAMPLE * test_samples + REFERENCE_PATHS_PER_SAMPLE * reference_samples)}
 
     def sharper_than_resolved(self) -> list[tuple[str, float]]:
         """(name, roughness) of the glossy materials with a constant roughness whose GGX lobe is narrower than the

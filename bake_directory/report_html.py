@@ -61,6 +61,9 @@ def _numbers_rows(report: dict) -> list:
     errors = report.get("errors", {})
     rows += [(f"error {key}", _psnr(errors[key]) if key == "psnr" else errors[key])
              for key in ("rmse", "psnr", "flip", "reference_noise_rmse", "reference_noise_flip") if key in errors]
+    if "reference_samples" in errors:
+        rows.append(("samples per pixel", f"reference {errors['reference_samples']} (two halves), the baked scene "
+                                          f"{errors.get('test_samples', errors['reference_samples'])}"))
     rows += [(f"FLIP where {name}", entry["flip"]) for name, entry in errors.get("flip_by_roughness", {}).items()
              if entry.get("pixels")]
     noise_by_class = errors.get("reference_noise_flip_by_roughness", {})

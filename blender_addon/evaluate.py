@@ -4,8 +4,9 @@ Reference: the scene with its original materials, path traced by Cycles at `refe
 independent halves (different seeds). Their difference measures the reference's own noise: the full
 reference's noise RMSE is RMSE(half A, half B) / 2, reported next to the bake's error so a reader can see the
 reference is good enough (noise well below the error). Test: the same views with the baked materials, which
-Cycles evaluates through the same node group EEVEE uses (emission only), at the same samples as the reference
-because surfaces the bake leaves alone (rough ones) are still path traced.
+Cycles evaluates through the same node group EEVEE uses (emission only), at test_samples (surfaces the bake leaves
+alone are still path traced there), fewer than the reference's: a reference sample is cheap beside one through the
+SG node groups.
 Metrics on tone-mapped images (bake_directory/image_metrics.py): RMSE, PSNR, FLIP; pictures reference | bake | FLIP.
 EEVEE, the engine the bake is for, renders the same views in a separate process (blender_addon/eevee_worker.py;
 it needs an OpenGL context), with ray tracing and baked light probes lighting what the bake leaves to the renderer:
@@ -15,7 +16,7 @@ up the same way, is what a user compares with (errors.eevee_without_bake; pictur
 with the bake). Each side renders with a sphere probe at the scene's centre and with the world's probe alone, and
 keeps the better (probe_setup, flip_by_probe_setup): which helps depends on the scene (docs §53).
 Nothing of the scene changes: temporary cameras and material swaps are undone before returning.
-The bake's own evaluation uses reference_samples_for(settings).
+The bake's own evaluation uses reference_samples_for(settings) and test_samples_for(settings).
 """
 from __future__ import annotations
 
@@ -293,7 +294,8 @@ def best_setup(by_setup: dict, references) -> tuple[str, list, dict]:
     return chosen, by_setup[chosen], scores
 
 
-REFERENCE_SAMPLES_MIN = 128
+REFERENCE_SAMPLES_MIN = 1024
+TEST_SAMPLES_MIN = 128
 EEVEE_LEFT_OUT = "left out of this evaluation: Cycles' only"
 EVALUATE_VIEWS = 2
 EVALUATE_RESOLUTION = (256, 144)
@@ -309,11 +311,20 @@ def evaluation_resolution(scene, pixels: int = EVALUATE_PIXELS) -> tuple[int, in
     return width, max(8, round(width / aspect))
 
 
+def test_samples_for(settings, reference_samples: int = 0) -> int:
+    """Samples of the baked scene's render: twice the light field's samples, at least 128, never more than the
+    reference's. Surfaces the bake leaves to the renderer (glass, a coat) are path traced there too; the SG node
+    groups make each sample of this render costly (about 60x a reference sample on `demo:materials`, docs §54)."""
+    test = max(TEST_SAMPLES_MIN, 2 * settings.samples)
+    return min(test, reference_samples) if reference_samples else test
+
+
 def reference_samples_for(settings) -> int:
-    """Reference spp for a bake: twice the light field's samples, at least 128. Measured on the demo spheres'
-    roughness 0.3-0.6 pixels, FLIP of a reference against 4096 spp is 0.040 / 0.033 / 0.020 at 64 / 128 / 512 spp:
-    Production (256 spp light fields, target FLIP 0.05) gets 512, Draft and Preview 128."""
-    return max(REFERENCE_SAMPLES_MIN, 2 * settings.samples)
+    """Reference spp for a bake: 8x the light field's samples, at least 1024. FLIP against a noisy reference
+    penalises the noise-free EEVEE renders as much as any error: on `demo:materials`' floor, the FLIP between two
+    64-spp halves is 0.039 where the bake's own error is 0.054 (docs §54). A reference sample costs a small share of
+    a test sample, so the reference is converged further than the test render (test_samples_for)."""
+    return max(REFERENCE_SAMPLES_MIN, 8 * settings.samples)
 
 
 def _reference_key(camera, resolution, reference_samples) -> tuple:
@@ -327,13 +338,13 @@ def _reference_key(camera, resolution, reference_samples) -> tuple:
 def evaluate_stage(scene, plan, out_dir, *, views: int = EVALUATE_VIEWS, resolution=None,
                    reference_samples: int = 128, test_samples: int | None = None, with_eevee: bool = True,
                    eevee_without_bake: bool = True, reference_cache: dict | None = None) -> dict:
-    """test_samples defaults to reference_samples: surfaces the bake does not replace (emitters, rough materials
-    left to the renderer) are still path traced in the test render, and must be as converged as in the reference
-    to compare fairly. reference_cache: a dict the caller keeps between evaluations of bakes of one unchanged
-    scene (the bench's trainings of one encoder); each view's two reference halves and surface images are
-    rendered once per camera placement, image size and samples and reused from it. resolution: (width, height),
-    by default evaluation_resolution(scene). eevee_without_bake: also render EEVEE alone, what a user compares with
-    (False leaves errors.eevee_without_bake empty: a check of the bake's own error only)."""
+    """test_samples defaults to reference_samples (the bake's own evaluation passes test_samples_for): surfaces the
+    bake does not replace (emitters, glass) are still path traced in the test render, whose noise counts against the
+    bake in Cycles' figures but not in EEVEE's. reference_cache: a dict the caller keeps between evaluations of bakes
+    of one unchanged scene (the bench's trainings of one encoder); each view's two reference halves and surface
+    images are rendered once per camera placement, image size and samples and reused from it. resolution: (width,
+    height), by default evaluation_resolution(scene). eevee_without_bake: also render EEVEE alone, what a user
+    compares with (False leaves errors.eevee_without_bake empty: a check of the bake's own error only)."""
     test_samples = test_samples or reference_samples
     resolution = tuple(resolution or evaluation_resolution(scene))
     start = time.perf_counter()

@@ -152,12 +152,14 @@ class BakeJob:
     # --- progress -------------------------------------------------------------------------------------
     def _stage_estimates_s(self) -> dict:
         """The plan's expected seconds of each stage this job runs (at least a second each)."""
-        reference_samples, evaluate_pixels = 0, 0
+        reference_samples, test_samples, evaluate_pixels = 0, 0, 0
         if "evaluate" in self.stages:
-            from .evaluate import EVALUATE_RESOLUTION, EVALUATE_VIEWS, reference_samples_for
+            from .evaluate import EVALUATE_RESOLUTION, EVALUATE_VIEWS, reference_samples_for, test_samples_for
             reference_samples = self.options["reference_samples"] or reference_samples_for(self.plan.settings)
+            test_samples = test_samples_for(self.plan.settings, reference_samples)
             evaluate_pixels = EVALUATE_VIEWS * EVALUATE_RESOLUTION[0] * EVALUATE_RESOLUTION[1]
-        estimates = self.plan.stage_estimates_s(reference_samples=reference_samples, evaluate_pixels=evaluate_pixels)
+        estimates = self.plan.stage_estimates_s(reference_samples=reference_samples, evaluate_pixels=evaluate_pixels,
+                                                test_samples=test_samples, with_eevee=self.options["eevee_evaluation"])
         return {stage: max(estimates[stage], 1.0) for stage in self.stages}
 
     def _overall(self, stage, fraction):
@@ -280,11 +282,13 @@ class BakeJob:
         return result
 
     def _evaluate(self):
-        from .evaluate import evaluate_stage, reference_samples_for
+        from .evaluate import evaluate_stage, reference_samples_for, test_samples_for
 
         samples = self.options["reference_samples"] or reference_samples_for(self.plan.settings)
-        yield "evaluate", self._overall("evaluate", 0.0), f"reference ({samples} spp) and baked renders"
-        return evaluate_stage(self.scene, self.plan, self.out_dir, reference_samples=samples,
+        test_samples = test_samples_for(self.plan.settings, samples)
+        yield "evaluate", self._overall("evaluate", 0.0), \
+            f"reference ({samples} spp) and baked ({test_samples} spp) renders"
+        return evaluate_stage(self.scene, self.plan, self.out_dir, reference_samples=samples, test_samples=test_samples,
                               with_eevee=self.options["eevee_evaluation"])
 
     def _apply(self):

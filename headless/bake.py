@@ -109,7 +109,8 @@ def parse_args(args: list[str]) -> argparse.Namespace:
     p.add_argument("--midpoints", type=int, default=0, metavar="M",
                    help="also render M held-out light fields at texel midpoints (interpolation metric)")
     p.add_argument("--reference-samples", type=int, default=0, metavar="N",
-                   help="the evaluate stage's path-traced reference spp (0: twice --samples, at least 128)")
+                   help="the evaluate stage's path-traced reference spp (0: 8x --samples, at least 1024); the baked "
+                   "scene renders at twice --samples, at least 128, never more than N")
     p.add_argument("--no-eevee-evaluation", action="store_true",
                    help="the evaluate stage compares with Cycles only, without EEVEE (a machine where EEVEE gets no "
                    "OpenGL context, such as a farm node without one, would wait for it)")
@@ -286,7 +287,7 @@ def stage_summary(stage: str, result, plan) -> tuple[str, list]:
                       f"{eevee['first_render_s']:.1f} s incl. shaders)" if "flip" in eevee else "")
         return (f"RMSE {result['rmse']:.4f}, PSNR {result['psnr']:.2f} dB, FLIP {result['flip']:.4f} over "
                 f"{len(result['views'])} views against {result['reference_samples']}-spp references (their noise RMSE "
-                f"{result['reference_noise_rmse']:.4f})"
+                f"{result['reference_noise_rmse']:.4f}), the baked scene at {result['test_samples']} spp"
                 + eevee_text), ([f"EEVEE not evaluated: {eevee['error']}"] if "error" in eevee else []) + \
             [f"EEVEE could not compile a material's shader (it renders magenta): {error}"
              for error in eevee.get("shader_errors", ())]

@@ -384,7 +384,8 @@ def test_the_bake_eta_replays_the_room_production_bake(monkeypatch, tmp_path):
 
     clock = [0.0]
     monkeypatch.setattr(pipeline.time, "monotonic", lambda: clock[0])
-    job = pipeline.BakeJob(build_demo_scene("demo:room"), BakeSettings.from_preset("production"), tmp_path)
+    job = pipeline.BakeJob(build_demo_scene("demo:room"), BakeSettings.from_preset("production"), tmp_path,
+                           reference_samples=512)  # that bake's evaluation
     estimates = job.estimates_s
     assert estimates["render"] == pytest.approx(job.plan.render_estimate_s())
     assert estimates["train"] > 600  # the budget, and the refits of the floor (0.25) and the gold (0.2) at R = 32
@@ -410,8 +411,25 @@ def test_the_cli_evaluates_with_cycles_only_when_eevee_is_left_out(tmp_path):
     without an OpenGL context would otherwise wait for EEVEE)."""
     out = _bake("--scene", "demo:spheres", "--out", str(tmp_path / "o"), "--texel-density", "1",
                 "--lightfield-resolution", "8", "--samples", "2", "--training-epochs", "1", "--lobe-refit-steps", "0",
-                "--irradiance-detail", "1", "--reference-samples", "2", "--no-eevee-evaluation")
+                "--irradiance-detail", "1", "--reference-samples", "4", "--no-eevee-evaluation")
     assert out.returncode == 0, out.stderr[-2000:]
     errors = json.loads((tmp_path / "o" / "report.json").read_text())["errors"]
     assert errors["flip"] > 0 and errors["eevee"] == {"error": "left out of this evaluation: Cycles' only"}
+    # the baked scene's render never takes more samples than the reference
+    assert (errors["reference_samples"], errors["test_samples"]) == (4, 4)
+    assert "against 4-spp references" in out.stdout and "the baked scene at 4 spp" in out.stdout
     assert "EEVEE not evaluated: left out of this evaluation" in out.stdout + out.stderr
+
+
+def test_the_evaluation_converges_its_reference_further_than_the_baked_render():
+    """The reference takes 8x the light field's samples (at least 1024); the baked scene's render twice them (at
+    least 128), never more than the reference, which --reference-samples sets."""
+    from sg_lightfield.blender_addon.evaluate import reference_samples_for, test_samples_for
+
+    expected = {"draft": (1024, 128), "preview": (1024, 128), "production": (2048, 512)}
+    for preset, (reference, test) in expected.items():
+        settings = BakeSettings.from_preset(preset)
+        assert (reference_samples_for(settings), test_samples_for(settings)) == (reference, test), preset
+        assert test_samples_for(settings, reference_samples_for(settings)) == test
+    draft = BakeSettings.from_preset("draft")
+    assert test_samples_for(draft, 16) == 16 and test_samples_for(draft, 4096) == 128
