@@ -356,11 +356,10 @@ class BakePlan:
         return fits * epochs * texels * TRAIN_S_PER_TEXEL_EPOCH_CPU * scale
 
     def stage_estimates_s(self, reference_samples: int = 0, evaluate_pixels: int = 0,
-                          test_samples: int | None = None, with_eevee: bool = True) -> dict[str, float]:
+                          test_samples: int = 0, with_eevee: bool = True) -> dict[str, float]:
         """Expected seconds of each stage on 2 CPU cores: the progress bar's weights, and the ETA of the stages not
         begun. evaluate_pixels: the evaluate stage's pixels over all its views; test_samples: the baked scene's
-        render's samples (by default the reference's)."""
-        test_samples = reference_samples if test_samples is None else test_samples
+        render's samples there."""
         least = refit_min_roughness(self.settings.lightfield_resolution)
         refitted = sum(o.texels for o in self.baked_objects
                        if any(m.glossy and (m.roughness >= least or "Roughness" in m.textured) for m in o.materials))

@@ -241,11 +241,12 @@ def render_eevee(scene, camera_names, work_dir: Path, samples: int = EEVEE_SAMPL
     ([(H, W, 3) images], [seconds per render], [materials whose shaders failed to compile, with the reason]).
     The first render's time includes shader compilation. without_bake: EEVEE as well as Blender allows without the
     bake (original materials, ray tracing, baked volume and sphere probes: eevee_worker.py); best_lighting: that
-    lighting for the scene as it is (what the bake leaves to the renderer gets it). The renders as set up, sphere
-    probe or none."""
+    lighting for the scene as it is (what the bake leaves to the renderer gets it). One render per view, as set up:
+    with the best lighting's sphere probe, or with no probe at all."""
     by_setup, seconds, failed = render_eevee_setups(scene, camera_names, work_dir, samples, timeout_s, without_bake,
                                                     best_lighting, world_probe_too=False)
-    return by_setup[SPHERE_PROBE_SETUP], seconds, failed
+    (images,) = by_setup.values()
+    return images, seconds, failed
 
 
 def render_eevee_setups(scene, camera_names, work_dir: Path, samples: int = EEVEE_SAMPLES, timeout_s: float = 900.0,

@@ -154,9 +154,8 @@ class BakeJob:
         """The plan's expected seconds of each stage this job runs (at least a second each)."""
         reference_samples, test_samples, evaluate_pixels = 0, 0, 0
         if "evaluate" in self.stages:
-            from .evaluate import EVALUATE_RESOLUTION, EVALUATE_VIEWS, reference_samples_for, test_samples_for
-            reference_samples = self.options["reference_samples"] or reference_samples_for(self.plan.settings)
-            test_samples = test_samples_for(self.plan.settings, reference_samples)
+            from .evaluate import EVALUATE_RESOLUTION, EVALUATE_VIEWS
+            reference_samples, test_samples = self._evaluation_samples()
             evaluate_pixels = EVALUATE_VIEWS * EVALUATE_RESOLUTION[0] * EVALUATE_RESOLUTION[1]
         estimates = self.plan.stage_estimates_s(reference_samples=reference_samples, evaluate_pixels=evaluate_pixels,
                                                 test_samples=test_samples, with_eevee=self.options["eevee_evaluation"])
@@ -281,11 +280,17 @@ class BakeJob:
         self._worker = None
         return result
 
-    def _evaluate(self):
-        from .evaluate import evaluate_stage, reference_samples_for, test_samples_for
+    def _evaluation_samples(self) -> tuple[int, int]:
+        """The evaluate stage's (reference, baked scene) spp: --reference-samples or the settings' rule."""
+        from .evaluate import reference_samples_for, test_samples_for
 
-        samples = self.options["reference_samples"] or reference_samples_for(self.plan.settings)
-        test_samples = test_samples_for(self.plan.settings, samples)
+        reference = self.options["reference_samples"] or reference_samples_for(self.plan.settings)
+        return reference, test_samples_for(self.plan.settings, reference)
+
+    def _evaluate(self):
+        from .evaluate import evaluate_stage
+
+        samples, test_samples = self._evaluation_samples()
         yield "evaluate", self._overall("evaluate", 0.0), \
             f"reference ({samples} spp) and baked ({test_samples} spp) renders"
         return evaluate_stage(self.scene, self.plan, self.out_dir, reference_samples=samples, test_samples=test_samples,
