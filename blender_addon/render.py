@@ -9,8 +9,11 @@ Passes (directories in the bake directory, see bake_directory/lightfield_tiles.p
                    from the texel's own rays when the plan handles it with environment visibility
                    (IWEV), but still lights the scene indirectly.
   env_radiance     the unoccluded environment L_E over the whole sphere (one block, many samples)
-  env_visibility   W_E per texel (shaders/env_visibility.py) from an L_E*V render: world visible, every
-                   surface a holdout (black), lamps left out, primary rays only.
+  env_visibility   W_E per texel (shaders/env_visibility.py) from the texel's visibility V: a render against a
+                   white world, every surface a holdout (black), lamps left out, primary rays only. Each pixel's
+                   mean V times env_radiance's pixel is its L_E*V. Rendered against the world itself, a pixel's
+                   few samples of the map's detail (an HDRI's small lamp) made L_E*V / L_E noisy, and W_E, clipped
+                   to [0, 1], lost what the noise pushed over 1 (docs/design-additions.md section 55).
   env_occluded     those L_E*V images themselves (the diffuse irradiance from the sky needs them).
   midpoints        optional held-out light fields at midpoints between neighbouring texels, rendered with
                    MIDPOINT_SAMPLES_FACTOR times the samples: the interpolation metric then measures the
@@ -40,7 +43,7 @@ from mathutils import Vector
 from ..bake_directory.bake_plan import BakeInputError, drive
 from ..bake_directory.bake_report import save_png, update_report
 from ..shaders.env_visibility import env_visibility
-from ..bake_directory.exr_io import read_exr, write_exr
+from ..bake_directory.exr_io import ExrError, read_exr, read_exr_metadata, write_exr
 from ..bake_directory.image_metrics import LUMINANCE
 from ..bake_directory.lightfield_tiles import (DEFAULT_TILE_MEGAPIXELS, TileIndex, blocks_to_images, images_to_blocks,
                                         parse_share, plan_tiles, preview_mosaic, read_preview_images,
@@ -51,6 +54,8 @@ from .capture import scene_bvh
 from .scene_analysis import active_scene, enable_nodes, quiet_stdout, remove_datablocks
 
 CAMERA_SHADER = Path(__file__).resolve().parent.parent / "shaders" / "lightfield_camera.osl"
+# env_occluded's L_E*V: the texel's visibility rendered against a white world, times env_radiance's pixel
+ENV_VISIBILITY_ESTIMATOR = "visibility against a white world"
 LAMP_MIN_PIXEL_FRACTION = 0.5  # of an octahedral pixel's angular radius (about 2/R radians)
 ENV_RADIANCE_SAMPLES = 1024  # per pixel of the 64 x 64 map: 3.4 s on 2 CPU cores; 4096 fits the same SGs (§42)
 ENV_RADIANCE_MIN_RESOLUTION = 64  # the environment SGs' fit wants finer than the light fields (training/env_fit.py)
@@ -204,6 +209,13 @@ class _RenderScene:
                 nodes.remove(node)
         hold = nodes.new("ShaderNodeHoldout")
         self.holdout.node_tree.links.new(hold.outputs[0], nodes["Material Output"].inputs["Surface"])
+        self.white_world = self._new(bpy.data.worlds, f"{TEMP_PREFIX} white world")  # what V is rendered against
+        self.white_world.color = (1.0, 1.0, 1.0)
+        enable_nodes(self.white_world)
+        background = self.white_world.node_tree.nodes.get("Background")
+        if background is not None:
+            background.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
+            background.inputs["Strength"].default_value = 1.0
 
     def __exit__(self, *exc):
         self._contexts.close()
@@ -331,6 +343,7 @@ class _RenderScene:
         for obj in wanted - linked:
             scene.collection.objects.link(obj)
         scene.view_layers[0].material_override = self.holdout if environment_pass else None
+        scene.world = self.white_world if kind == "env_occluded" else self.world
         if self.world is not None:
             self.world.cycles_visibility.camera = environment_pass or not self.plan.environment.iwev
         user, cycles = self.source.cycles, scene.cycles
@@ -509,7 +522,8 @@ def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: i
         if kind == "env_visibility":  # its L_E*V images are kept too: diffuse needs the sky's irradiance
             occluded_index = TileIndex("env_occluded", plan_hash, resolution, settings.samples, 3, tiles)
             write_index(out_dir / "env_occluded", occluded_index)
-            done = [t for t in done if tile_is_finished(out_dir / "env_occluded", occluded_index, t)]
+            done = [t for t in done if tile_is_finished(out_dir / "env_occluded", occluded_index, t)
+                    and _visibility_estimator(out_dir / "env_occluded" / t.file) == ENV_VISIBILITY_ESTIMATOR]
         result.tiles_skipped[kind] = len(done)
         result.tiles_rendered[kind] = 0
         offset = 0
@@ -549,11 +563,16 @@ def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: i
                                              resolution, f"{kind}_{tile.index}")
                     render_seconds += time.perf_counter() - tick
                     post = time.perf_counter()
-                    pixels = np.nan_to_num(pixels, nan=0.0, posinf=0.0, neginf=0.0)
-                    write_exr(out_dir / "env_occluded" / tile.file, pixels, precision="half", channels=["R", "G", "B"],
+                    visible = np.clip(np.nan_to_num(pixels, nan=0.0, posinf=0.0, neginf=0.0).mean(axis=-1), 0.0, 1.0)
+                    visible = blocks_to_images(visible[..., None], tile.columns, tile.rows, resolution,
+                                               len(positions))
+                    occluded = (visible * env_radiance[None]).astype(np.float32)  # L_E*V
+                    write_exr(out_dir / "env_occluded" / tile.file,
+                              images_to_blocks(occluded, tile.columns, tile.rows), precision="half",
+                              channels=["R", "G", "B"],
                               metadata={"plan_hash": plan_hash, "tile_hash": tile.hash, "resolution": resolution,
-                                        "samples": index.samples, "kind": "env_occluded"})
-                    occluded = blocks_to_images(pixels, tile.columns, tile.rows, resolution, len(positions))
+                                        "samples": index.samples, "kind": "env_occluded",
+                                        "visibility": ENV_VISIBILITY_ESTIMATOR})
                     radiance = env_radiance
                     if index.channels == 1:
                         occluded, radiance = _mono(occluded), _mono(env_radiance)
@@ -615,6 +634,14 @@ def env_radiance_resolution(resolution: int) -> int:
     """The environment map's resolution: a multiple of the light fields' (it averages down to theirs exactly), at
     least ENV_RADIANCE_MIN_RESOLUTION."""
     return resolution * max(1, -(-ENV_RADIANCE_MIN_RESOLUTION // resolution))
+
+
+def _visibility_estimator(path) -> str:
+    """How the tile's L_E*V was made (ENV_VISIBILITY_ESTIMATOR); '' for one rendered against the world itself."""
+    try:
+        return read_exr_metadata(path).get("visibility", "")
+    except ExrError:
+        return ""
 
 
 def _render_env_radiance(renderer, resolution):

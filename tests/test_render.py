@@ -1,13 +1,15 @@
 """Render stage with real Cycles renders (small sizes, CPU): the custom OSL camera, lamps, IWEV, resume."""
 import bpy  # noqa: I001
 import bmesh
+import math
 import tempfile
 import numpy as np
 import pytest
 from mathutils import Matrix
 
 from sg_lightfield.blender_addon.capture import capture
-from sg_lightfield.blender_addon.render import MIDPOINT_SAMPLES_FACTOR, optix_devices, render_stage
+from sg_lightfield.blender_addon.render import (ENV_VISIBILITY_ESTIMATOR, MIDPOINT_SAMPLES_FACTOR, optix_devices,
+                                                render_stage)
 from sg_lightfield.blender_addon.scene_analysis import build_plan, enable_nodes
 from sg_lightfield.bake_directory.bake_plan import BakeCancelled, BakeInputError, BakeSettings
 from sg_lightfield.shaders.env_visibility import above_horizon_fraction
@@ -233,6 +235,50 @@ def test_environment_visibility_open_sky_roof_and_roughness(tmp_path):
     _, lightfield = read_images(tmp_path / "lightfield", plan.stage_hash("render"))
     assert lightfield[open_sky][:, zenith[0], zenith[1]].max() == 0.0
     assert lightfield[open_sky].max() > 0.1
+
+
+def _world_with_a_small_lamp(scene, direction, cos_radius, dim=0.2, bright=400.0):
+    """A dim world with one bright disc (an HDRI's small wall lamp) of angular radius acos(cos_radius) about
+    `direction`: its octahedral pixel's radiance varies far more than a pixel's few samples average out."""
+    world = uniform_world(scene, (dim, dim, dim), name="small lamp world")
+    nodes, links = world.node_tree.nodes, world.node_tree.links
+    coordinates = nodes.new("ShaderNodeTexCoord")
+    towards = nodes.new("ShaderNodeVectorMath")
+    towards.operation = "DOT_PRODUCT"
+    towards.inputs[1].default_value = direction
+    inside = nodes.new("ShaderNodeMath")
+    inside.operation = "GREATER_THAN"
+    inside.inputs[1].default_value = cos_radius
+    strength = nodes.new("ShaderNodeMapRange")
+    strength.inputs["To Min"].default_value, strength.inputs["To Max"].default_value = 1.0, bright / dim
+    links.new(coordinates.outputs["Generated"], towards.inputs[0])
+    links.new(towards.outputs["Value"], inside.inputs[0])
+    links.new(inside.outputs[0], strength.inputs["Value"])
+    links.new(strength.outputs["Result"], nodes["Background"].inputs["Strength"])
+
+
+def test_environment_visibility_of_open_sky_is_one_under_a_small_bright_lamp(tmp_path):
+    """W_E comes from the texel's visibility, not from a few samples of the world's detail: an open floor under a
+    2-degree lamp at 8 spp sees the lamp's pixel with W_E 1, as every other open pixel (rendered against the world
+    itself, that pixel's L_E*V / L_E was a noisy ratio, clipped at 1: W_E down to 0.01 there)."""
+    floor = mesh_object("Floor", lambda bm: bmesh.ops.create_grid(bm, x_segments=1, y_segments=1, size=2.0),
+                        material("floor", 0.15))
+    scene = scene_with(floor)
+    lamp = np.array([0.6, 0.0, 0.8])
+    _world_with_a_small_lamp(scene, tuple(lamp), math.cos(math.radians(2.0)))
+    plan, _, _ = _bake(scene, tmp_path, resolution=16, samples=8, density=2.0)
+    assert plan.environment.iwev
+    texels, w = read_images(tmp_path / "env_visibility", plan.stage_hash("render"))
+    _, sky = read_images(tmp_path / "env_occluded", plan.stage_hash("render"))
+    row, col = direction_to_pixel(lamp, 16)
+    upward = pixel_directions(16)[..., 2] > 0.2
+    np.testing.assert_allclose(w[:, upward], 1.0, atol=1e-3)
+    assert w[:, row, col].min() > 0.999
+    # env_occluded is L_E*V: the open sky's own radiance, the lamp's pixel as bright in every texel
+    lamp_pixel = sky[:, row, col].mean(axis=-1)
+    assert lamp_pixel.min() > 2.0 and lamp_pixel.max() - lamp_pixel.min() < 1e-2 * lamp_pixel.max()
+    assert read_exr_metadata(tmp_path / "env_occluded" / read_index(tmp_path / "env_occluded").tiles[0].file)[
+        "visibility"] == ENV_VISIBILITY_ESTIMATOR
 
 
 def _lit_ball():
