@@ -4,9 +4,10 @@ Per texel and reflection direction w (an octahedral pixel):
     W_E(w) = sum_i K(w, w_i) (L_E V)(w_i) / sum_i K(w, w_i) L_E(w_i) m(w_i)
 with K the GGX lobe of the texel's roughness as an SG about w (NDF sharpness 2/alpha^2, warped to the
 reflection domain at normal incidence: divided by 4) times the pixel solid angle, (L_E V) the texel's
-rendered environment-only image (geometry black, nothing below the horizon), L_E the unoccluded
-environment and m the fraction of each pixel above the texel's horizon (the same fraction the
-render's hemisphere cut keeps). Unoccluded texels get exactly 1; W_E is clipped to [0, 1].
+environment-only image (the render stage: each pixel's visibility V, rendered against a white world with
+geometry black and nothing below the horizon, times that pixel of L_E), L_E the unoccluded environment and
+m the fraction of each pixel above the texel's horizon (the same fraction the render's hemisphere cut
+keeps). Unoccluded texels get exactly 1; W_E is clipped to [0, 1].
 The kernel depends on roughness only: one (P, P) matrix product per distinct roughness.
 """
 from __future__ import annotations
