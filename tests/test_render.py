@@ -13,7 +13,7 @@ from sg_lightfield.blender_addon.render import (ENV_VISIBILITY_ESTIMATOR, MIDPOI
 from sg_lightfield.blender_addon.scene_analysis import build_plan, enable_nodes
 from sg_lightfield.bake_directory.bake_plan import BakeCancelled, BakeInputError, BakeSettings
 from sg_lightfield.shaders.env_visibility import above_horizon_fraction
-from sg_lightfield.bake_directory.exr_io import read_exr_metadata
+from sg_lightfield.bake_directory.exr_io import read_exr, read_exr_metadata, write_exr
 from sg_lightfield.bake_directory.lightfield_tiles import read_images, read_index
 from sg_lightfield.shaders.octahedral import direction_to_pixel, pixel_directions
 from sg_lightfield.bake_directory.texel_maps import channels, read_texel_maps, texels_of_objects
@@ -268,7 +268,7 @@ def test_environment_visibility_of_open_sky_is_one_under_a_small_bright_lamp(tmp
     _world_with_a_small_lamp(scene, tuple(lamp), math.cos(math.radians(2.0)))
     plan, _, _ = _bake(scene, tmp_path, resolution=16, samples=8, density=2.0)
     assert plan.environment.iwev
-    texels, w = read_images(tmp_path / "env_visibility", plan.stage_hash("render"))
+    _, w = read_images(tmp_path / "env_visibility", plan.stage_hash("render"))
     _, sky = read_images(tmp_path / "env_occluded", plan.stage_hash("render"))
     row, col = direction_to_pixel(lamp, 16)
     upward = pixel_directions(16)[..., 2] > 0.2
@@ -277,8 +277,14 @@ def test_environment_visibility_of_open_sky_is_one_under_a_small_bright_lamp(tmp
     # env_occluded is L_E*V: the open sky's own radiance, the lamp's pixel as bright in every texel
     lamp_pixel = sky[:, row, col].mean(axis=-1)
     assert lamp_pixel.min() > 2.0 and lamp_pixel.max() - lamp_pixel.min() < 1e-2 * lamp_pixel.max()
-    assert read_exr_metadata(tmp_path / "env_occluded" / read_index(tmp_path / "env_occluded").tiles[0].file)[
-        "visibility"] == ENV_VISIBILITY_ESTIMATOR
+    tile = tmp_path / "env_occluded" / read_index(tmp_path / "env_occluded").tiles[0].file
+    metadata = read_exr_metadata(tile)
+    assert metadata.pop("visibility") == ENV_VISIBILITY_ESTIMATOR
+    assert render_stage(scene, plan, tmp_path).tiles_rendered["env_visibility"] == 0  # finished: kept
+    # a tile made by the estimator before, against the world itself, is rendered again
+    write_exr(tile, read_exr(tile)[0], channels=["R", "G", "B"], metadata=metadata)
+    assert render_stage(scene, plan, tmp_path).tiles_rendered["env_visibility"] == 1
+    assert read_exr_metadata(tile)["visibility"] == ENV_VISIBILITY_ESTIMATOR
 
 
 def _lit_ball():
@@ -391,7 +397,6 @@ def test_atlas_light_field_equals_a_panoramic_render_of_the_same_texel(tmp_path)
     scene.render.filepath = str(tmp_path / "pano.exr")
     from sg_lightfield.blender_addon.render import quiet_stdout
     from sg_lightfield.blender_addon.scene_analysis import active_scene
-    from sg_lightfield.bake_directory.exr_io import read_exr
     with active_scene(scene), quiet_stdout():
         bpy.ops.render.render(write_still=True, scene=scene.name)
     pano, _, _ = read_exr(tmp_path / "pano.exr", channels=["R", "G", "B"])
@@ -408,7 +413,6 @@ def test_atlas_light_field_equals_a_panoramic_render_of_the_same_texel(tmp_path)
 def _panorama_at(scene, tmp_path, location, name, samples=64):
     from sg_lightfield.blender_addon.render import quiet_stdout
     from sg_lightfield.blender_addon.scene_analysis import active_scene
-    from sg_lightfield.bake_directory.exr_io import read_exr
     camera = bpy.data.objects.new(name, bpy.data.cameras.new(name))
     camera.data.type, camera.data.panorama_type = "PANO", "EQUIRECTANGULAR"
     camera.data.clip_start, camera.data.clip_end = 1e-6, 1e6
