@@ -129,14 +129,17 @@ def read_index(kind_dir: Path, plan_hash: str | None = None) -> TileIndex:
     return index
 
 
-def tile_is_finished(kind_dir: Path, index: TileIndex, tile: Tile) -> bool:
+def tile_is_finished(kind_dir: Path, index: TileIndex, tile: Tile, made_by: dict[str, str] | None = None) -> bool:
+    """Whether the tile's file was rendered for this plan, tile, resolution and samples; made_by: metadata that
+    must match too (how a pass was made, when that changed and older tiles must be rendered again)."""
     try:
         meta = read_exr_metadata(Path(kind_dir) / tile.file)
     except ExrError:  # missing, truncated or not an EXR: render it (again)
         return False
     return (meta.get("plan_hash") == index.plan_hash and meta.get("tile_hash") == tile.hash
             and meta.get("resolution") == str(index.resolution)
-            and meta.get("samples") == str(tile_samples(index, tile)))
+            and meta.get("samples") == str(tile_samples(index, tile))
+            and all(meta.get(key) == value for key, value in (made_by or {}).items()))
 
 
 def tile_samples(index: TileIndex, tile: Tile) -> int:

@@ -43,7 +43,7 @@ from mathutils import Vector
 from ..bake_directory.bake_plan import BakeInputError, drive
 from ..bake_directory.bake_report import save_png, update_report
 from ..shaders.env_visibility import env_visibility
-from ..bake_directory.exr_io import ExrError, read_exr, read_exr_metadata, write_exr
+from ..bake_directory.exr_io import read_exr, write_exr
 from ..bake_directory.image_metrics import LUMINANCE
 from ..bake_directory.lightfield_tiles import (DEFAULT_TILE_MEGAPIXELS, TileIndex, blocks_to_images, images_to_blocks,
                                         parse_share, plan_tiles, preview_mosaic, read_preview_images,
@@ -210,12 +210,10 @@ class _RenderScene:
         hold = nodes.new("ShaderNodeHoldout")
         self.holdout.node_tree.links.new(hold.outputs[0], nodes["Material Output"].inputs["Surface"])
         self.white_world = self._new(bpy.data.worlds, f"{TEMP_PREFIX} white world")  # what V is rendered against
-        self.white_world.color = (1.0, 1.0, 1.0)
         enable_nodes(self.white_world)
-        background = self.white_world.node_tree.nodes.get("Background")
-        if background is not None:
-            background.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
-            background.inputs["Strength"].default_value = 1.0
+        background = self.white_world.node_tree.nodes["Background"]
+        background.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
+        background.inputs["Strength"].default_value = 1.0
 
     def __exit__(self, *exc):
         self._contexts.close()
@@ -522,8 +520,8 @@ def render_steps(scene, plan, out_dir, *, share: str | None = None, midpoints: i
         if kind == "env_visibility":  # its L_E*V images are kept too: diffuse needs the sky's irradiance
             occluded_index = TileIndex("env_occluded", plan_hash, resolution, settings.samples, 3, tiles)
             write_index(out_dir / "env_occluded", occluded_index)
-            done = [t for t in done if tile_is_finished(out_dir / "env_occluded", occluded_index, t)
-                    and _visibility_estimator(out_dir / "env_occluded" / t.file) == ENV_VISIBILITY_ESTIMATOR]
+            done = [t for t in done if tile_is_finished(out_dir / "env_occluded", occluded_index, t,
+                                                        made_by={"visibility": ENV_VISIBILITY_ESTIMATOR})]
         result.tiles_skipped[kind] = len(done)
         result.tiles_rendered[kind] = 0
         offset = 0
@@ -634,14 +632,6 @@ def env_radiance_resolution(resolution: int) -> int:
     """The environment map's resolution: a multiple of the light fields' (it averages down to theirs exactly), at
     least ENV_RADIANCE_MIN_RESOLUTION."""
     return resolution * max(1, -(-ENV_RADIANCE_MIN_RESOLUTION // resolution))
-
-
-def _visibility_estimator(path) -> str:
-    """How the tile's L_E*V was made (ENV_VISIBILITY_ESTIMATOR); '' for one rendered against the world itself."""
-    try:
-        return read_exr_metadata(path).get("visibility", "")
-    except ExrError:
-        return ""
 
 
 def _render_env_radiance(renderer, resolution):
