@@ -245,6 +245,7 @@ def _baked_material(original, group, irradiance_group):
         inputs.feed(node.inputs["Roughness"], inputs.roughness())
         inputs.feed(node.inputs["F0"], inputs.f0())
         inputs.feed(node.inputs["Albedo"], inputs.albedo())
+        inputs.feed(node.inputs["Metallic"], inputs.metallic())
         if bsdf.type == "BSDF_DIFFUSE":
             shaded = inputs.emission_of(inputs.multiply_colours(node.outputs["Irradiance"], inputs.base_colour()))
         else:  # one emission per output, summed as closures: the group's Total, or the same sum in math nodes, renders

@@ -267,6 +267,59 @@ def check_ggx_ndf_lobes():
                        note=f"one SG: {ggx_ndf_shape_error(m.GGX_NDF_PEAK_MATCHED):.3f}")
 
 
+# --- GGX directional albedo (the split sum of shaders/sg_shading.py) ------------------------------------
+def directional_albedo(roughness, ndotv, f0, metallic=0.0, n=300):
+    """Hemisphere integral of the reference integrand ggx_brdf_cos towards a view at `ndotv`, importance-sampling the
+    GGX NDF on a stratified n x n grid (a uniform quadrature cannot resolve the lobes of low roughness)."""
+    alpha = m.ggx_alpha(roughness)
+    u1, u2 = (g.ravel() for g in np.meshgrid((np.arange(n) + 0.5) / n, (np.arange(n) + 0.5) / n, indexing="ij"))
+    cos_h = np.sqrt((1 - u1) / (1 + (alpha**2 - 1) * u1))
+    sin_h, phi = np.sqrt(1 - cos_h**2), 2 * np.pi * u2
+    h = np.stack([sin_h * np.cos(phi), sin_h * np.sin(phi), cos_h], -1)
+    view = np.array([np.sqrt(1 - ndotv**2), 0.0, ndotv])
+    vdoth = h @ view
+    light = 2 * vdoth[:, None] * h - view
+    pdf = m.ggx_ndf(cos_h, alpha) * cos_h / (4 * np.maximum(vdoth, 1e-12))  # of the light direction
+    value = m.ggx_brdf_cos(light, np.broadcast_to(view, light.shape), np.broadcast_to((0.0, 0.0, 1.0), light.shape),
+                           roughness, np.broadcast_to(f0, light.shape), metallic)
+    return np.where((vdoth > 0)[:, None], value / np.maximum(pdf, 1e-30)[:, None], 0.0).mean(axis=0)
+
+
+def split_sum_grid(rows=26, columns=30):
+    """(roughness, n.v) of the split sum's fitting grid: even steps in its variables sqrt(roughness), (n.v)^(1/4)."""
+    x = np.linspace(np.sqrt(m.ROUGHNESS_MIN), 1.0, rows) ** 2
+    y = np.linspace(m.NDOTV_MIN ** 0.25, 1.0, columns) ** 4
+    return x, y
+
+
+def fit_split_sum_dielectric(degrees=(5, 7)):
+    """SPLIT_SUM_DIELECTRIC of shaders/sg_shading.py: Chebyshev coefficients (as split_sum_albedo reads them) of the
+    directional albedo's F0 = 0 part with the dielectric's Fresnel shape minus that with Schlick's, least squares over
+    split_sum_grid. Returns rows of rounded coefficients."""
+    from .sg_shading import NumpyOps, split_sum_series_basis
+
+    roughness, ndotv = split_sum_grid()
+    r, v = (g.ravel() for g in np.meshgrid(roughness, ndotv, indexing="ij"))
+    target = np.array([directional_albedo(a, b, np.zeros(1), 0.0)[0] - directional_albedo(a, b, np.zeros(1), 1.0)[0]
+                       for a, b in zip(r, v)])
+    basis = split_sum_series_basis(NumpyOps(), r, v, degrees)  # (points, terms)
+    coefficients, *_ = np.linalg.lstsq(basis, target, rcond=None)
+    return tuple(tuple(round(float(c), 6) for c in row) for row in coefficients.reshape(degrees[0] + 1, degrees[1] + 1))
+
+
+def check_fresnel(iors=(1.33, 1.45, 1.6, 2.0), cosines=np.linspace(0.0, 1.0, 1001)):
+    """The dielectric Fresnel shape of IOR 1.5 (sg_math.fresnel_dielectric_weight) against the normalised shape at
+    other IORs, and Schlick's against it."""
+    shape = m.fresnel_dielectric_weight(cosines)
+    worst = 0.0
+    for eta in iors:
+        f0 = m.fresnel_dielectric(1.0, eta)
+        worst = max(worst, float(np.max(np.abs((m.fresnel_dielectric(cosines, eta) - f0) / (1 - f0) - shape))))
+    schlick = float(np.max(np.abs((1 - cosines) ** 5 - shape)))
+    return CheckResult("dielectric Fresnel shape, IOR 1.5 (absolute)", worst, len(iors) * len(cosines),
+                       f"IOR {iors}, cos 0..1", note=f"Schlick's: {schlick:.3f}")
+
+
 # --- octahedral map -------------------------------------------------------------------------------
 def check_solid_angle_sum(resolutions=(1, 2, 3, 7, 8, 16, 33, 64, 128)):
     err = max(abs(octa.pixel_solid_angles(r).sum() - 4 * np.pi) / (4 * np.pi) for r in resolutions)
@@ -312,10 +365,11 @@ def all_checks(quick=False):
             check_thesis_convolution(sharpness=(10.0,), roughness=(0.3,), ndotv=(1.0,)),
             *check_glossy(sharpness=(10.0, 1e3), roughness=(m.ROUGHNESS_MIN, 0.5), ndotv=(1.0, 0.1)),
             check_irradiance(sharpness=(1e-4, 1.0, 4.0, 1e4), cosines=np.linspace(-1, 1, 5)), check_ggx_ndf_lobes(),
+            check_fresnel(),
             check_solid_angle_sum(), check_solid_angle_pixels(resolutions=(4, 7)), check_octahedral_roundtrip(),
         ]
     return [check_sg_integral(), check_sg_inner_product(), check_thesis_inner_product(), check_sg_asg_convolution(),
-            check_thesis_convolution(), *check_glossy(), check_irradiance(), check_ggx_ndf_lobes(),
+            check_thesis_convolution(), *check_glossy(), check_irradiance(), check_ggx_ndf_lobes(), check_fresnel(),
             check_solid_angle_sum(),
             check_solid_angle_pixels(), check_octahedral_roundtrip()]
 

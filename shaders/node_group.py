@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from .sg_shading import shade
 
 GROUP_NAME = "SG Lightfield"
-GROUP_VERSION = 4  # 4: an Irradiance output (E / pi) for Diffuse BSDFs; 3: every input computed (EEVEE uniforms)
+GROUP_VERSION = 5  # 5: a Metallic input (the Fresnel's shape); 4: an Irradiance output (E / pi) for Diffuse BSDFs
 VERSION_KEY = "sglf_version"
 COLUMN_NODES = 40  # nodes per column in the automatic layout
 
@@ -454,7 +454,8 @@ def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GRO
     group = new_or_cleared_group(name)
     sockets = [("UV", "INPUT", "NodeSocketVector"), ("Normal", "INPUT", "NodeSocketVector"),
                ("Roughness", "INPUT", "NodeSocketFloat"), ("F0", "INPUT", "NodeSocketColor"),
-               ("Albedo", "INPUT", "NodeSocketColor"), ("Total", "OUTPUT", "NodeSocketColor"),
+               ("Albedo", "INPUT", "NodeSocketColor"), ("Metallic", "INPUT", "NodeSocketFloat"),
+               ("Total", "OUTPUT", "NodeSocketColor"),
                ("Glossy", "OUTPUT", "NodeSocketColor"), ("Diffuse", "OUTPUT", "NodeSocketColor"),
                ("Environment", "OUTPUT", "NodeSocketColor"), ("Irradiance", "OUTPUT", "NodeSocketColor")]
     for socket_name, in_out, socket_type_name in sockets:
@@ -467,7 +468,7 @@ def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GRO
     ops.count = 3
     # The material may leave these unlinked (constants): laundered so nothing downstream folds into uniforms.
     uv, normal, f0, albedo = (ops.launder(inputs.outputs[key]) for key in ("UV", "Normal", "F0", "Albedo"))
-    roughness = ops.launder(inputs.outputs["Roughness"])
+    roughness, metallic = (ops.launder(inputs.outputs[key]) for key in ("Roughness", "Metallic"))
     columns, rows = layout.grid
     width, height = (float(v) for v in layout.atlas_size)
     # Shared by every tile: the four texel centres around UV (clamped inside the atlas) and their weights.
@@ -494,7 +495,7 @@ def build_node_group(image, layout: SGTextureLayout, env_sgs=(), name: str = GRO
         return cache[(kind, j)]
 
     result = shade(ops, lookup, normal, geometry.outputs["Incoming"], roughness, f0, albedo, layout.sg_count,
-                   layout.iwev_count, [tuple(e) for e in env_sgs], layout.has_irradiance, layout.sh_count)
+                   layout.iwev_count, [tuple(e) for e in env_sgs], layout.has_irradiance, layout.sh_count, metallic)
     outputs = ops._node("NodeGroupOutput")
     outputs.location = (200 * (ops.count // COLUMN_NODES + 1), 0)
     for key, socket_name in (("total", "Total"), ("glossy", "Glossy"), ("diffuse", "Diffuse"),

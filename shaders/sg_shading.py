@@ -11,10 +11,11 @@ normalising a zero vector gives the zero vector, square roots of negatives give 
 Glossy (Paper I section 6, DESIGN section 3): for every SG j of the texel, sg_math.sg_glossy (`glossy_sg`): the
 SG times the two-lobe GGX NDF integrated by Laplace's method about their product's peak, with the NDF's warp to
 light directions taken at that peak (not at the mirror direction z, Xu et al. 2013, which makes the lobe far too
-narrow at grazing view), each lobe's share above the horizon, times Schlick Fresnel and height-correlated Smith G
-over 4 (n.v) at the peak. The node backend builds `glossy_sg` once as a nested group (`ops.call`) and instances it
-per SG. Environment: the same glossy of the environment's global SGs, times W_E(z) from the texel's IWEV SGs.
-Diffuse: albedo x irradiance / pi, the irradiance read from its own texture tile (see apply.py for why).
+narrow at grazing view), each lobe's share above the horizon, times the Fresnel (sg_math.fresnel) and
+height-correlated Smith G over 4 (n.v) at the peak. The node backend builds `glossy_sg` once as a nested group
+(`ops.call`) and instances it per SG. Environment: the same glossy of the environment's global SGs, times W_E(z)
+from the texel's IWEV SGs. Diffuse: albedo x irradiance / pi, the irradiance read from its own texture tile (see
+apply.py for why); under a dielectric's specular the albedo is scaled by 1 minus the split sum (split_sum_albedo).
 The SH L2 baseline (the benchmark's encoder at equal bytes) swaps the glossy sum for the radiance's 9 SH
 coefficients convolved with the NDF warped about z (GGX_NDF_LOBES), Fresnel and G taken at z; each warped lobe
 is taken as the isotropic SG of equal solid-angle integral (sharpness 2 sqrt(lam_x lam_y)): Funk-Hecke gives
@@ -26,8 +27,9 @@ import math
 
 import numpy as np
 
-from .sg_math import (GGX_NDF_LOBES, GLOSSY_NDF_LOBES, HORIZON_EXPONENT_MAX, HORIZON_LOGISTIC,
-                      LOCAL_WARP_ITERATIONS, NDOTV_MIN, ROUGHNESS_MIN, SHARPNESS_MAX, SHARPNESS_MIN)
+from .sg_math import (DIELECTRIC_FRESNEL_IOR, GGX_NDF_LOBES, GLOSSY_NDF_LOBES, HORIZON_EXPONENT_MAX,
+                      HORIZON_LOGISTIC, LOCAL_WARP_ITERATIONS, NDOTV_MIN, ROUGHNESS_MIN, SHARPNESS_MAX,
+                      SHARPNESS_MIN)
 
 
 class NumpyOps:
@@ -143,10 +145,23 @@ def mirror_warped_lobes(ops, pixel):
     return [(ops.mul(lam_x, b), ops.mul(lam_y, b), ops.mul(pixel["mu_d"], a)) for a, b in GGX_NDF_LOBES]
 
 
-def microfacet_factor(ops, n, v, light, half, ndotv, alpha, f0):
-    """Fresnel (Schlick) at v.h x height-correlated Smith G / (4 n.v), for one light direction: a colour."""
-    one_minus = ops.sub(ops.const(1.0), ops.clamp(ops.dot(v, half), 0.0, 1.0))
-    weight = ops.power(one_minus, 5.0)
+def fresnel_weight(ops, cosine, metallic):
+    """sg_math.fresnel's w: the dielectric's exact Fresnel (IOR 1.5) normalised to [0, 1], mixed by `metallic` with
+    Schlick's (1 - cos)^5."""
+    c = ops.clamp(cosine, 0.0, 1.0)
+    g = ops.sqrt(ops.add(ops.mul(c, c), DIELECTRIC_FRESNEL_IOR ** 2 - 1.0))
+    a = ops.div(ops.sub(g, c), ops.add(g, c))
+    b = ops.div(ops.sub(ops.mul(c, ops.add(g, c)), 1.0), ops.add(ops.mul(c, ops.sub(g, c)), 1.0))
+    f0 = ((DIELECTRIC_FRESNEL_IOR - 1.0) / (DIELECTRIC_FRESNEL_IOR + 1.0)) ** 2
+    exact = ops.mul(ops.mul(ops.mul(a, a), 0.5), ops.add(ops.mul(b, b), 1.0))
+    dielectric = ops.mul(ops.sub(exact, f0), 1.0 / (1.0 - f0))
+    schlick = ops.power(ops.sub(ops.const(1.0), c), 5.0)
+    return ops.add(dielectric, ops.mul(metallic, ops.sub(schlick, dielectric)))
+
+
+def microfacet_factor(ops, n, v, light, half, ndotv, alpha, f0, metallic):
+    """Fresnel (sg_math.fresnel) at v.h x height-correlated Smith G / (4 n.v), for one light direction: a colour."""
+    weight = fresnel_weight(ops, ops.dot(v, half), metallic)
     fresnel = ops.vadd(f0, ops.vscale(ops.vsub(ops.vconst((1.0, 1.0, 1.0)), f0), weight))
     ndotl = ops.clamp(ops.dot(n, light), NDOTV_MIN, 1.0)
     alpha2 = ops.mul(alpha, alpha)
@@ -166,9 +181,9 @@ def horizon_fraction(ops, elevation, sharpness):
     return ops.div(1.0, ops.add(1.0, ops.exp(ops.minimum(exponent, HORIZON_EXPONENT_MAX))))
 
 
-def glossy_sg(ops, n, v, z, ndotv, lam_d, mu_d, alpha, f0, axis, sharpness, amplitude):
+def glossy_sg(ops, n, v, z, ndotv, lam_d, mu_d, alpha, f0, metallic, axis, sharpness, amplitude):
     """sg_math.sg_glossy of one SG (axis, sharpness, colour amplitude) step by step: {'glossy': colour}. The
-    arguments after f0 are the SG's; the others are pixel_terms'."""
+    arguments after metallic are the SG's; the others before f0 are pixel_terms'."""
     axis = ops.normalize(axis)
     lam = ops.clamp(sharpness, SHARPNESS_MIN, SHARPNESS_MAX)
     amplitude = ops.vmax(amplitude, ops.vconst((0.0, 0.0, 0.0)))
@@ -201,7 +216,7 @@ def glossy_sg(ops, n, v, z, ndotv, lam_d, mu_d, alpha, f0, axis, sharpness, ampl
         term = ops.mul(ops.mul(ops.mul(mu_k, width), above), ops.exp(exponent))
         total = term if total is None else ops.add(total, term)
         if factor is None:
-            factor = microfacet_factor(ops, n, v, peak, half, ndotv, alpha, f0)
+            factor = microfacet_factor(ops, n, v, peak, half, ndotv, alpha, f0, metallic)
     return {"glossy": ops.vmul(ops.vscale(amplitude, total), factor)}
 
 
@@ -272,6 +287,18 @@ SPLIT_SUM_BIAS = (
 )
 
 
+# The dielectric's extra: the F0 = 0 albedo with sg_math.fresnel's dielectric w minus Schlick's, on the same series
+# (shaders/check_math.py fit_split_sum_dielectric: a 26 x 30 grid of the quadrature).
+SPLIT_SUM_DIELECTRIC = (
+    (-0.002144, 0.006295, 0.002479, -0.004346, -0.005495, -0.000180, 0.002862, 0.001376),
+    (0.008227, -0.008842, -0.005930, 0.004024, 0.007169, 0.000208, -0.003876, -0.001571),
+    (0.000806, -0.003561, 0.002265, 0.001106, -0.001179, 0.000212, 0.000853, -0.000220),
+    (-0.003572, 0.003910, 0.000458, -0.000831, -0.000648, -0.000312, 0.000477, 0.000598),
+    (0.000467, -0.000117, -0.000258, -0.000233, 0.000181, 0.000139, -0.000368, -0.000126),
+    (0.000866, -0.000839, -0.000240, 0.000292, 0.000080, -0.000031, 0.000063, -0.000160),
+)
+
+
 def _chebyshev(ops, x, degree: int) -> list:
     """T_0(x) .. T_degree(x) by the recurrence T_n = 2 x T_(n-1) - T_(n-2)."""
     values = [ops.const(1.0), x]
@@ -280,16 +307,29 @@ def _chebyshev(ops, x, degree: int) -> list:
     return values[:degree + 1]
 
 
-def split_sum_albedo(ops, f0, roughness, ndotv):
-    """GGX directional albedo (a colour): the fraction of uniform light a surface reflects specularly towards v.
-    Times E / pi it is the specular of an irradiance-lightmapped material; 1 minus it is what the diffuse under a
-    dielectric's specular receives (as Principled layers them)."""
+def _split_sum_chebyshev(ops, roughness, ndotv, degrees):
+    """T_0..T_degrees[0] of sqrt(roughness) and T_0..T_degrees[1] of (n.v)^(1/4), each mapped onto [-1, 1]."""
     def unit_interval(value, low):  # [low, 1] -> [-1, 1]
         return ops.sub(ops.mul(ops.sub(value, ops.const(low)), ops.const(2.0 / (1.0 - low))), ops.const(1.0))
 
     x = unit_interval(ops.sqrt(ops.clamp(roughness, ROUGHNESS_MIN, 1.0)), math.sqrt(ROUGHNESS_MIN))
     y = unit_interval(ops.sqrt(ops.sqrt(ops.clamp(ndotv, NDOTV_MIN, 1.0))), math.sqrt(math.sqrt(NDOTV_MIN)))
-    tx, ty = _chebyshev(ops, x, len(SPLIT_SUM_SCALE) - 1), _chebyshev(ops, y, len(SPLIT_SUM_SCALE[0]) - 1)
+    return _chebyshev(ops, x, degrees[0]), _chebyshev(ops, y, degrees[1])
+
+
+def split_sum_series_basis(ops, roughness, ndotv, degrees):
+    """(points, terms) numpy array of T_i(x) T_j(y), i-major: the split sum's least-squares basis (NumpyOps)."""
+    tx, ty = _split_sum_chebyshev(ops, np.asarray(roughness), np.asarray(ndotv), degrees)
+    return np.stack(np.broadcast_arrays(*(a * b for a in tx for b in ty)), -1)
+
+
+def split_sum_albedo(ops, f0, roughness, ndotv, metallic):
+    """GGX directional albedo (a colour): the fraction of uniform light a surface reflects specularly towards v.
+    Times E / pi it is the specular of an irradiance-lightmapped material; 1 minus it is what the diffuse under a
+    dielectric's specular receives (as Principled layers them). With sg_math.fresnel, F0 + (1 - F0) w: F0 scale +
+    bias for Schlick's w, plus (1 - F0) (1 - metallic) the dielectric's extra over Schlick's."""
+    degrees = (len(SPLIT_SUM_SCALE) - 1, len(SPLIT_SUM_SCALE[0]) - 1)
+    tx, ty = _split_sum_chebyshev(ops, roughness, ndotv, degrees)
 
     def series(coefficients):
         total = None
@@ -301,12 +341,14 @@ def split_sum_albedo(ops, f0, roughness, ndotv):
             total = term if total is None else ops.add(total, term)
         return total
 
-    scale, bias = series(SPLIT_SUM_SCALE), series(SPLIT_SUM_BIAS)
-    return ops.vadd(ops.vscale(f0, scale), ops.vscale(ops.vconst((1.0, 1.0, 1.0)), bias))
+    scale, bias, extra = series(SPLIT_SUM_SCALE), series(SPLIT_SUM_BIAS), series(SPLIT_SUM_DIELECTRIC)
+    white = ops.vconst((1.0, 1.0, 1.0))
+    schlick = ops.vadd(ops.vscale(f0, scale), ops.vscale(white, bias))
+    return ops.vadd(schlick, ops.vscale(ops.vsub(white, f0), ops.mul(extra, ops.sub(1.0, metallic))))
 
 
 def shade(ops, lookup, normal, view, roughness, f0, albedo, sg_count: int, iwev_count: int = 0, env_sgs=(),
-          has_irradiance: bool = True, sh_count: int = 0):
+          has_irradiance: bool = True, sh_count: int = 0, metallic=0.0):
     """Colours {'glossy', 'diffuse', 'environment', 'total', 'irradiance'} ('irradiance': E / pi, what a white
     Lambertian surface shows: a Diffuse BSDF of any colour is that colour times it).
 
@@ -315,11 +357,12 @@ def shade(ops, lookup, normal, view, roughness, f0, albedo, sg_count: int, iwev_
     'sh' j: (rgb SH L2 coefficient j, unused) when sh_count = SH_L2_COUNT (the SH baseline; sg_count is then 0).
     Sharpness travels in the alpha channel log-encoded to [0, 1] (encode_sharpness): image alpha is clamped
     to [0, 1] by the renderers, and interpolating log-sharpness is the better blend anyway.
-    env_sgs: [(axis, sharpness, rgb amplitude)] global constants of the environment."""
+    env_sgs: [(axis, sharpness, rgb amplitude)] global constants of the environment. metallic: the share of the
+    Fresnel that takes the metal's shape (sg_math.fresnel)."""
     pixel = pixel_terms(ops, normal, view, roughness)
 
     def glossy_of(axis, sharpness, amplitude):  # one Group node per SG in the node backend
-        return ops.call("glossy SG", glossy_sg, **pixel, f0=f0, axis=axis, sharpness=sharpness,
+        return ops.call("glossy SG", glossy_sg, **pixel, f0=f0, metallic=metallic, axis=axis, sharpness=sharpness,
                         amplitude=amplitude)["glossy"]
 
     black = ops.vconst((0.0, 0.0, 0.0))
@@ -332,7 +375,7 @@ def shade(ops, lookup, normal, view, roughness, f0, albedo, sg_count: int, iwev_
     if sh_count:
         z = pixel["z"]
         factor = microfacet_factor(ops, pixel["n"], pixel["v"], z, ops.normalize(ops.vadd(z, pixel["v"])),
-                                   pixel["ndotv"], pixel["alpha"], f0)
+                                   pixel["ndotv"], pixel["alpha"], f0, metallic)
         glossy = ops.vmul(convolve_sh(ops, pixel, lookup), factor)
     environment = black
     if env_sgs and iwev_count:
@@ -344,7 +387,7 @@ def shade(ops, lookup, normal, view, roughness, f0, albedo, sg_count: int, iwev_
                                                      amplitude=env_ops.vconst(amplitude))["glossy"])
             return {"glossy": env}
 
-        env = ops.call("environment", environment_glossy, **pixel, f0=f0)["glossy"]
+        env = ops.call("environment", environment_glossy, **pixel, f0=f0, metallic=metallic)["glossy"]
         visibility = black
         for j in range(iwev_count):
             axis, encoded = lookup("iwev", j)
@@ -362,7 +405,7 @@ def shade(ops, lookup, normal, view, roughness, f0, albedo, sg_count: int, iwev_
         uniform_radiance = ops.vscale(ops.vmax(irradiance, black), ops.const(1.0 / math.pi))
         # The diffuse under the specular gets what the specular leaves, as Principled layers them (a white furnace
         # in Cycles: tests/test_apply.py). Without SGs (an irradiance lightmap) the specular is the split sum too.
-        specular_albedo = split_sum_albedo(ops, f0, roughness, pixel["ndotv"])
+        specular_albedo = split_sum_albedo(ops, f0, roughness, pixel["ndotv"], metallic)
         if not sg_count and not sh_count:
             glossy = ops.vmul(specular_albedo, uniform_radiance)
         albedo = ops.vmul(albedo, ops.vmax(ops.vsub(ops.vconst((1.0, 1.0, 1.0)), specular_albedo), black))

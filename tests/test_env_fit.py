@@ -66,7 +66,7 @@ def _floor_reflection_ratios(lights, lamp, sgs, roughnesses=(0.15, 0.3)):
                 f = ggx_brdf_cos(directions, view, normal, roughness, np.full((1, 3), 0.04))
                 truth.append((f * environment * solid[:, None]).sum(0) @ LUMINANCE)
                 terms = pixel_terms(ops, normal, view, np.array([roughness]))
-                glossy = sum(glossy_sg(ops, **terms, f0=np.full((1, 3), 0.04), axis=np.asarray(a)[None],
+                glossy = sum(glossy_sg(ops, **terms, f0=np.full((1, 3), 0.04), metallic=0.0, axis=np.asarray(a)[None],
                                        sharpness=np.array([s]), amplitude=np.asarray(m)[None])["glossy"]
                              for a, s, m in sgs)
                 shaded.append(float(glossy[0] @ LUMINANCE))

@@ -491,9 +491,9 @@ def test_a_coated_surface_bakes_below_its_coat_and_keeps_the_coat_for_the_render
 
 @pytest.mark.slow
 def test_node_group_with_per_pixel_inputs_matches_its_numpy_reference_in_cycles(tmp_path):
-    """The parity test of tests/test_apply.py with the group's Normal, Roughness, F0 and Albedo fed per pixel by
-    images (as a baked copy feeds them from the user's textures) instead of constants: each pixel's own inputs go
-    into the numpy reference, from roughness 0 (floored) to 1 and from facing to grazing normals."""
+    """The parity test of tests/test_apply.py with the group's Normal, Roughness, F0, Albedo and Metallic fed per
+    pixel by images (as a baked copy feeds them from the user's textures) instead of constants: each pixel's own inputs
+    go into the numpy reference, from roughness 0 (floored) to 1 and from facing to grazing normals."""
     from sg_lightfield.shaders.node_group import SGTextureLayout
     from sg_lightfield.shaders.sg_shading import NumpyOps, encode_sharpness, shade
     from tests.test_apply import parity_group, parity_scene
@@ -513,13 +513,13 @@ def test_node_group_with_per_pixel_inputs_matches_its_numpy_reference_in_cycles(
     # Per-pixel inputs, row 0 = top (the render's first row); roughness spans 0..1, normals up to 85 degrees
     roughness = rng.uniform(0, 1, (h, w))
     roughness[0, 0], roughness[0, 1] = 0.0, 1.0
-    f0, albedo = rng.uniform(0.02, 1.0, (h, w, 3)), rng.uniform(0, 1, (h, w, 3))
+    f0, albedo, metallic = rng.uniform(0.02, 1.0, (h, w, 3)), rng.uniform(0, 1, (h, w, 3)), rng.uniform(0, 1, (h, w))
     theta, phi = np.radians(rng.uniform(0, 85, (h, w))), rng.uniform(0, 2 * np.pi, (h, w))
     normal = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], -1)
     tree = node.id_data
     uv = tree.nodes.new("ShaderNodeUVMap")
     for name, values in (("Roughness", roughness[..., None].repeat(3, -1)), ("F0", f0), ("Albedo", albedo),
-                         ("Normal", normal)):
+                         ("Normal", normal), ("Metallic", metallic[..., None].repeat(3, -1))):
         data = np.concatenate([values[::-1], np.ones((h, w, 1))], -1).astype(np.float32)  # images start at the bottom
         texture_image = bpy.data.images.new(f"parity {name}", w, h, alpha=True, float_buffer=True)
         texture_image.colorspace_settings.name = "Non-Color"
@@ -534,7 +534,7 @@ def test_node_group_with_per_pixel_inputs_matches_its_numpy_reference_in_cycles(
         bpy.ops.render.render(write_still=True, scene=scene.name)
     rendered, _, _ = read_exr(tmp_path / "parity.exr", channels=["R", "G", "B"])
     reference = shade(NumpyOps(), lookup, normal, np.broadcast_to((0.0, 0.0, 1.0), (h, w, 3)), roughness, f0, albedo,
-                      layout.sg_count, 0, [], True, 0)["total"]
+                      layout.sg_count, 0, [], True, 0, metallic)["total"]
     worst = float((np.abs(rendered - reference) / np.maximum(np.abs(reference), 0.1)).max())
     assert worst < 2e-3, worst
 

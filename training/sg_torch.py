@@ -16,6 +16,7 @@ from ..shaders.sg_math import (  # the one place the clamps are defined
     AMPLITUDE_MAX_HALF,
     AXIS_EPS,
     CLAMPED_COSINE_LEGENDRE,
+    DIELECTRIC_FRESNEL_IOR,
     GGX_NDF_LOBES,
     GLOSSY_NDF_LOBES,
     HORIZON_EXPONENT_MAX,
@@ -34,7 +35,8 @@ __all__ = [
     "AMPLITUDE_MAX_HALF", "SHARPNESS_MIN", "SHARPNESS_MAX", "ROUGHNESS_MIN", "NDOTV_MIN",
     "dot", "safe_normalize", "orthonormal_tangents", "one_minus_exp_neg2x_over_x",
     "sg_eval", "sg_integral", "sg_inner_product", "clamp_roughness", "ggx_alpha", "ndf_sg", "ASG",
-    "reflection_frame", "warp_ndf_to_asg", "asg_eval", "sg_asg_convolve", "fresnel_schlick",
+    "reflection_frame", "warp_ndf_to_asg", "asg_eval", "sg_asg_convolve", "fresnel_dielectric",
+    "fresnel_dielectric_weight", "fresnel",
     "smith_lambda_ggx", "smith_g2_ggx", "ggx_ndf", "ggx_brdf_cos_white", "microfacet_factor", "normalize_or_zero",
     "horizon_fraction",
     "sg_glossy", "sg_glossy_mirror_warp", "bessel_i_scaled",
@@ -143,8 +145,22 @@ def sg_asg_convolve(axis, sharpness, amplitude, asg: ASG):
     return amplitude * (asg.amplitude * scale * shape).unsqueeze(-1)
 
 
-def fresnel_schlick(f0, cos_theta):
-    return f0 + (1 - f0) * ((1 - torch.clamp(cos_theta, 0, 1)) ** 5).unsqueeze(-1)
+def fresnel_dielectric(cos_theta, eta):
+    c = torch.clamp(cos_theta, 0, 1)
+    g = torch.sqrt(eta * eta - 1 + c * c)
+    a, b = (g - c) / (g + c), (c * (g + c) - 1) / (c * (g - c) + 1)
+    return 0.5 * a * a * (1 + b * b)
+
+
+def fresnel_dielectric_weight(cos_theta):
+    f0 = ((DIELECTRIC_FRESNEL_IOR - 1) / (DIELECTRIC_FRESNEL_IOR + 1)) ** 2
+    return (fresnel_dielectric(cos_theta, DIELECTRIC_FRESNEL_IOR) - f0) / (1 - f0)
+
+
+def fresnel(f0, cos_theta, metallic=0.0):
+    schlick = (1 - torch.clamp(cos_theta, 0, 1)) ** 5
+    dielectric = fresnel_dielectric_weight(cos_theta)
+    return f0 + (1 - f0) * (dielectric + metallic * (schlick - dielectric)).unsqueeze(-1)
 
 
 def smith_lambda_ggx(cos_theta, alpha):
@@ -175,18 +191,18 @@ def ggx_brdf_cos_white(light, view, normal, roughness):
     return torch.where(ndotl > 0, d * g / (4 * ndotv), 0.0)
 
 
-def sg_glossy_mirror_warp(axis, sharpness, amplitude, normal, view, roughness, f0):
+def sg_glossy_mirror_warp(axis, sharpness, amplitude, normal, view, roughness, f0, metallic=0.0):
     asgs = [warp_ndf_to_asg(normal, view, roughness, lobe) for lobe in GGX_NDF_LOBES]
     conv = sum(sg_asg_convolve(axis, sharpness, amplitude, asg) for asg in asgs)
     z = asgs[0].z
     ndotv = torch.clamp(dot(normal, view), NDOTV_MIN, 1)
-    return conv * microfacet_factor(normal, view, z, safe_normalize(z + view), ndotv, roughness, f0)
+    return conv * microfacet_factor(normal, view, z, safe_normalize(z + view), ndotv, roughness, f0, metallic)
 
 
-def microfacet_factor(normal, view, light, half, ndotv, roughness, f0):
+def microfacet_factor(normal, view, light, half, ndotv, roughness, f0, metallic=0.0):
     ndotl = torch.clamp(dot(normal, light), NDOTV_MIN, 1)
     g = smith_g2_ggx(ndotl, ndotv, ggx_alpha(roughness))
-    return fresnel_schlick(f0, dot(view, half)) * (g / (4 * ndotv)).unsqueeze(-1)
+    return fresnel(f0, dot(view, half), metallic) * (g / (4 * ndotv)).unsqueeze(-1)
 
 
 def normalize_or_zero(v):
@@ -199,7 +215,7 @@ def horizon_fraction(elevation, sharpness):
 
 
 def sg_glossy(axis, sharpness, amplitude, normal, view, roughness, f0, lobes=GLOSSY_NDF_LOBES,
-              iterations=LOCAL_WARP_ITERATIONS):
+              iterations=LOCAL_WARP_ITERATIONS, metallic=0.0):
     z, _, _, ndotv = reflection_frame(normal, view)
     _, lam_d, mu_d = ndf_sg(normal, roughness)
     nu = sharpness / 2
@@ -227,7 +243,7 @@ def sg_glossy(axis, sharpness, amplitude, normal, view, roughness, f0, lobes=GLO
         above = horizon_fraction(dot(normal, peak), lam_in + nu * cosine)
         integral = amplitude * (mu * width * above * torch.exp(exponent)).unsqueeze(-1)
         if factor is None:
-            factor = microfacet_factor(normal, view, peak, half, ndotv, roughness, f0)
+            factor = microfacet_factor(normal, view, peak, half, ndotv, roughness, f0, metallic)
         total = total + integral * factor
     return total
 
