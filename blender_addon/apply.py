@@ -214,10 +214,10 @@ def _lightmap_uv(tree):
 def _baked_material(original, group, irradiance_group):
     """The baked copy of `original`: its own node tree with every baked BSDF replaced by an emission of the bake's
     shading (surface_shaders.rewrite_surface). The SG group takes the BSDF's own inputs (normal or bump map,
-    roughness, F0 and diffuse albedo computed per pixel from base colour, metallic, IOR, specular level and tint);
-    a Diffuse BSDF shows its colour times the group's Irradiance (E / pi); a Principled BSDF's emission is kept, and
-    its coat stays for the renderer to light over the baked layers (LeafInputs.under_coat), and its Alpha cuts the
-    baked lighting out as it cuts the BSDF; see-through materials keep the user's BSDFs on back faces
+    roughness, metallic, F0 and diffuse albedo computed per pixel from base colour, metallic, IOR, specular level and
+    tint); a Diffuse BSDF shows its colour times the group's Irradiance (E / pi); a Principled BSDF's emission is
+    kept, and its coat stays for the renderer to light over the baked layers (LeafInputs.under_coat), and its Alpha
+    cuts the baked lighting out as it cuts the BSDF; see-through materials keep the user's BSDFs on back faces
     (LeafInputs.see_through).
     An earlier copy is replaced by a fresh one (its users follow), so a re-apply starts from the user's material.
     `irradiance_group()` makes the irradiance-only group, called only when a Diffuse BSDF needs it."""

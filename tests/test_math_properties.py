@@ -42,6 +42,7 @@ def all_outputs(xp, axis, lam, amp, normal, view, rough, f0, axis2, lam2):
         "asg": xp.asg_eval(axis, asg)[..., None],
         "convolve": xp.sg_asg_convolve(axis, lam, amp, asg),
         "glossy": xp.sg_glossy(axis, lam, amp, normal, view, rough, f0),
+        "glossy_partly_metallic": xp.sg_glossy(axis, lam, amp, normal, view, rough, f0, metallic=0.3),
         "glossy_mirror_warp": xp.sg_glossy_mirror_warp(axis, lam, amp, normal, view, rough, f0),
         "irradiance": xp.sg_irradiance(axis, lam, amp, normal),
         "sharpness_x": asg.sharpness_x[..., None],
