@@ -152,9 +152,9 @@ def fresnel_weight(ops, cosine, metallic):
     g = ops.sqrt(ops.add(ops.mul(c, c), DIELECTRIC_FRESNEL_IOR ** 2 - 1.0))
     a = ops.div(ops.sub(g, c), ops.add(g, c))
     b = ops.div(ops.sub(ops.mul(c, ops.add(g, c)), 1.0), ops.add(ops.mul(c, ops.sub(g, c)), 1.0))
-    f0 = ((DIELECTRIC_FRESNEL_IOR - 1.0) / (DIELECTRIC_FRESNEL_IOR + 1.0)) ** 2
+    at_normal = ((DIELECTRIC_FRESNEL_IOR - 1.0) / (DIELECTRIC_FRESNEL_IOR + 1.0)) ** 2
     exact = ops.mul(ops.mul(ops.mul(a, a), 0.5), ops.add(ops.mul(b, b), 1.0))
-    dielectric = ops.mul(ops.sub(exact, f0), 1.0 / (1.0 - f0))
+    dielectric = ops.mul(ops.sub(exact, at_normal), 1.0 / (1.0 - at_normal))
     schlick = ops.power(ops.sub(ops.const(1.0), c), 5.0)
     return ops.add(dielectric, ops.mul(metallic, ops.sub(schlick, dielectric)))
 
